@@ -1,0 +1,200 @@
+"""Run configuration: one frozen dataclass per TOML table, strict loading.
+
+`sample_config.toml` at the repository root equals these defaults (a test checks it).
+Unknown tables or keys, wrong types and values outside their choices raise `ConfigError`
+naming the offending key, so a typo never silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, get_type_hints
+
+from mosaic.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """The paper's fundus pre-processing, each step switchable, plus the field-of-view mask."""
+
+    green_channel: bool = True  # use the green channel (best vessel contrast) instead of luma
+    clahe: bool = True  # contrast-limited adaptive histogram equalisation
+    clahe_clip_limit: float = 2.0
+    clahe_tile_grid: int = 8  # tiles per side
+    bilateral: bool = True  # edge-preserving denoising
+    bilateral_diameter_px: int = 5
+    bilateral_sigma_color: float = 25.0
+    bilateral_sigma_space: float = 5.0
+    fov_mask: bool = True  # keep keypoints off the dark border of fundus / slit-lamp frames
+    fov_threshold: int = 12  # grey level under which a border pixel counts as outside the view
+    fov_erode_px: int = 6  # margin kept away from the field-of-view edge
+
+
+@dataclass(frozen=True)
+class FeaturesConfig:
+    """Keypoint detector and descriptor."""
+
+    detector: str = "sift"  # a key of mosaic.features.DETECTORS
+    descriptor: str = "rootsift"  # "rootsift": upright root-SIFT (the paper's); "native": detector's own
+    max_keypoints: int = 1000  # strongest kept per frame
+    nms_window_px: int = 10  # GLAMpoints non-maximum suppression window (paper: 10)
+    score_threshold: float = 0.0  # GLAMpoints minimum score of a keypoint
+    descriptor_size_px: float = 10.0  # keypoint diameter given to the SIFT descriptor
+    weights: str = ""  # GLAMpoints weights file; empty: the weights shipped in the package
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    """Brute-force matching of descriptors."""
+
+    cross_check: bool = True  # keep mutual nearest neighbours only (the paper's)
+    ratio: float = 1.0  # Lowe ratio test threshold; 1.0 turns it off
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Robust homography estimation and the rules that declare it failed."""
+
+    method: str = "ransac"  # ransac | usac_default | usac_magsac | usac_accurate | usac_fast
+    reproj_threshold_px: float = 3.0
+    max_iters: int = 2000
+    confidence: float = 0.995
+    min_inliers: int = 8  # fewer RANSAC inliers than this is a failure
+
+
+@dataclass(frozen=True)
+class ComposeConfig:
+    """Mosaic canvas and blending."""
+
+    blend: str = "feather"  # feather | average | last
+    max_canvas_px: int = 8000  # cap on either side of the canvas
+    feather_px: int = 40  # distance from the frame edge over which feather weights ramp up
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Frame streaming and what to do when a frame does not register."""
+
+    on_failure: str = "skip"  # stop (paper's protocol) | skip | restart (new mosaic segment)
+    step: int = 1  # process every step-th frame
+    max_frames: int = 0  # stop after this many processed frames; 0: whole video
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole run configuration, one attribute per TOML table."""
+
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    features: FeaturesConfig = field(default_factory=FeaturesConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    compose: ComposeConfig = field(default_factory=ComposeConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+
+
+CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
+    ("features", "descriptor"): ("rootsift", "native"),
+    ("registration", "method"): (
+        "ransac",
+        "usac_default",
+        "usac_magsac",
+        "usac_accurate",
+        "usac_fast",
+    ),
+    ("compose", "blend"): ("feather", "average", "last"),
+    ("pipeline", "on_failure"): ("stop", "skip", "restart"),
+}
+POSITIVE = {
+    ("preprocess", "clahe_tile_grid"),
+    ("preprocess", "bilateral_diameter_px"),
+    ("features", "max_keypoints"),
+    ("features", "nms_window_px"),
+    ("features", "descriptor_size_px"),
+    ("registration", "reproj_threshold_px"),
+    ("registration", "max_iters"),
+    ("compose", "max_canvas_px"),
+    ("pipeline", "step"),
+}
+
+
+def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
+    where = f"[{table}] {key}"
+    if expected is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if expected is not bool and isinstance(value, bool) or not isinstance(value, expected):
+        raise ConfigError(
+            f"config {where} must be {expected.__name__}, got {type(value).__name__} {value!r}"
+        )
+    choices = CHOICES.get((table, key))
+    if choices is not None and value not in choices:
+        raise ConfigError(f"config {where} must be one of {', '.join(choices)}, got {value!r}")
+    if (table, key) in POSITIVE and value <= 0:
+        raise ConfigError(f"config {where} must be > 0, got {value!r}")
+    if isinstance(value, int | float) and not isinstance(value, bool) and value < 0:
+        raise ConfigError(f"config {where} must be >= 0, got {value!r}")
+    return value
+
+
+def _build_table(table: str, cls: type, raw: Any) -> Any:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"config [{table}] must be a table")
+    hints = get_type_hints(cls)
+    known = {f.name for f in fields(cls)}
+    for key in raw:
+        if key not in known:
+            raise ConfigError(
+                f"unknown config key [{table}] {key} (known: {', '.join(sorted(known))})"
+            )
+    values = {key: _check_value(table, key, value, hints[key]) for key, value in raw.items()}
+    return cls(**values)
+
+
+def config_from_dict(raw: dict[str, Any]) -> Config:
+    """Validate a parsed TOML document into a `Config`; missing keys take their defaults."""
+    tables = {f.name: f for f in fields(Config)}
+    built = {}
+    for table, value in raw.items():
+        if table not in tables:
+            raise ConfigError(
+                f"unknown config table [{table}] (known: {', '.join(tables)})"
+            )
+        built[table] = _build_table(table, get_type_hints(Config)[table], value)
+    return Config(**built)
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read a TOML config file; `None` gives the defaults."""
+    if path is None:
+        return Config()
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc}") from exc
+    if not text.strip():
+        raise ConfigError(f"config file {path} is empty")
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from exc
+    return config_from_dict(raw)
+
+
+def with_overrides(config: Config, **tables: dict[str, Any]) -> Config:
+    """A copy of `config` with some keys replaced, validated like file values."""
+    updated = {}
+    for table, values in tables.items():
+        current = dataclasses.asdict(getattr(config, table))
+        current.update(values)
+        updated[table] = _build_table(table, get_type_hints(Config)[table], current)
+    return dataclasses.replace(config, **updated)
+
+
+def config_to_dict(config: Config) -> dict[str, dict[str, Any]]:
+    """Plain dict of the config, for reports and the viewer."""
+    return dataclasses.asdict(config)
