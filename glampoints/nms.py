@@ -1,0 +1,81 @@
+"""Non-maximum suppression of keypoint score maps (paper: "standard non-differentiable NMS").
+
+A pixel is kept when it is the maximum of the square window of side `2 * (window_px // 2) + 1`
+centred on it (window 10 -> 11x11, radius 5) and its score is above `threshold`. Two kept
+points are therefore more than `window_px // 2` pixels apart in Chebyshev distance.
+
+Ties: two window maxima that lie in each other's window necessarily have equal scores; such a
+candidate is dropped when a tied candidate with a smaller raster index (y * W + x) lies in its
+window, so a flat plateau gives one point (its first pixel in raster order), never a cluster.
+Fully vectorised: two `max_pool2d` passes, no loop over pixels or keypoints.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+
+def _radius(window_px: int) -> int:
+    if window_px < 1:
+        raise ValueError(f"NMS window must be >= 1 px, got {window_px}")
+    return window_px // 2
+
+
+def nms_mask(score: torch.Tensor, window_px: int = 10, threshold: float = 0.0) -> torch.Tensor:
+    """Boolean (B,1,H,W) mask of the kept local maxima of a (B,1,H,W) score map."""
+    if score.dim() != 4 or score.shape[1] != 1:
+        raise ValueError(f"score map must be (B,1,H,W), got {tuple(score.shape)}")
+    r = _radius(window_px)
+    score = score.detach()
+    if r == 0:
+        return score > threshold
+    k = 2 * r + 1
+    local_max = F.max_pool2d(score, k, stride=1, padding=r)
+    cand = (score == local_max) & (score > threshold)
+    # Tie break: among candidates in one window (necessarily equal scores) keep the one with
+    # the smallest raster index, found as a max-pool of the negated index.
+    _, _, h, w = score.shape
+    dtype = torch.float32 if h * w < 2**24 else torch.float64
+    index = torch.arange(h * w, dtype=dtype, device=score.device).view(1, 1, h, w)
+    neg_index = torch.where(cand, -index, torch.full_like(index, -float(h * w)))
+    first = F.max_pool2d(neg_index, k, stride=1, padding=r)
+    return cand & (neg_index == first)
+
+
+def nms(
+    score: torch.Tensor,
+    window_px: int = 10,
+    threshold: float = 0.0,
+    top_k: int | None = None,
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Keypoints of each map of a (B,1,H,W) batch: list of (xy (N,2) float32, scores (N,)).
+
+    Points are sorted by decreasing score (ties: raster order); at most `top_k` are kept.
+    """
+    keep = nms_mask(score, window_px, threshold)
+    out: list[tuple[torch.Tensor, torch.Tensor]] = []
+    for b in range(score.shape[0]):
+        ys, xs = torch.nonzero(keep[b, 0], as_tuple=True)
+        s = score[b, 0, ys, xs].detach().float()
+        order = torch.sort(s, descending=True, stable=True).indices
+        if top_k is not None:
+            order = order[: max(int(top_k), 0)]
+        xy = torch.stack([xs[order], ys[order]], dim=1).to(torch.float32)
+        out.append((xy, s[order]))
+    return out
+
+
+def nms_numpy(
+    score: np.ndarray,
+    window_px: int = 10,
+    threshold: float = 0.0,
+    top_k: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Single HxW map convenience: (xy (N,2) float32, scores (N,) float32), strongest first."""
+    if score.ndim != 2:
+        raise ValueError(f"score map must be HxW, got shape {score.shape}")
+    t = torch.from_numpy(np.ascontiguousarray(score, dtype=np.float32))[None, None]
+    xy, s = nms(t, window_px, threshold, top_k)[0]
+    return xy.numpy(), s.numpy().astype(np.float32)

@@ -1,0 +1,280 @@
+"""`mosaic` command line: build, synth, register. The only module of `mosaic` importing typer.
+
+Every `MosaicError` (bad path, unreadable video, invalid config or weights, ...) becomes one line
+on stderr and exit code 2; Ctrl-C during `build` still writes the partial mosaic and report.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import dataclasses
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from glampoints.detector import WeightsError
+from mosaic.config import Config, load_config, with_overrides
+from mosaic.errors import InputError, MosaicError
+from mosaic.features import DETECTORS, FeatureExtractor
+from mosaic.io import check_output_path, open_frames, read_image, write_image, write_json
+from mosaic.pipeline import MosaicBuilder, MosaicResult, register_pair
+from mosaic.synth import SynthParams, write_synthetic_video
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Retinal video mosaicking with GLAMpoints keypoints.",
+)
+log = logging.getLogger("mosaic")
+
+EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+
+@contextmanager
+def _user_errors() -> Iterator[None]:
+    """Turn errors a user can act on into one line on stderr and exit code 2."""
+    try:
+        yield
+    except (MosaicError, WeightsError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(EXIT_USER_ERROR) from None
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+
+
+def _config(
+    path: Path | None,
+    detector: str | None = None,
+    **pipeline: Any,
+) -> Config:
+    config = load_config(path)
+    overrides: dict[str, dict[str, Any]] = {}
+    if detector is not None:
+        if detector not in DETECTORS:
+            raise MosaicError(f"unknown detector {detector!r} (choices: {', '.join(DETECTORS)})")
+        overrides["features"] = {"detector": detector}
+    pipeline = {k: v for k, v in pipeline.items() if v is not None}
+    if pipeline:
+        overrides["pipeline"] = pipeline
+    return with_overrides(config, **overrides) if overrides else config
+
+
+def _segment_path(output: Path, index: int) -> Path:
+    return output.with_name(f"{output.stem}_seg{index:03d}{output.suffix}")
+
+
+def _write_outputs(result: MosaicResult, output: Path, report_path: Path, extra: dict) -> None:
+    """Write the main mosaic, every segment when there are several, and the report."""
+    report = {**extra, **result.report}
+    main = result.main
+    if main is None:
+        raise MosaicError("no frame could be placed on the mosaic; nothing written")
+    write_image(output, main.image)
+    report["mosaic"] = str(output)
+    report["main_segment"] = main.index
+    if len(result.segments) > 1:
+        for segment, entry in zip(result.segments, report["segments"], strict=True):
+            path = _segment_path(output, segment.index)
+            write_image(path, segment.image)
+            entry["mosaic"] = str(path)
+    else:
+        report["segments"][0]["mosaic"] = str(output)
+    write_json(report_path, report)
+
+
+def _print_summary(summary: dict[str, Any], output: Path, report_path: Path) -> None:
+    rows = [
+        ("frames read", summary["frames_read"]),
+        ("registered", summary["registered"]),
+        ("failed", summary["failed"]),
+        ("skipped", summary["skipped"]),
+        ("frames until failure", summary["frames_until_failure"]),
+        ("longest registered run", summary["longest_registered_run"]),
+        ("segments", summary["segments"]),
+        ("mean matches / inliers", f"{summary['mean_matches']} / {summary['mean_inliers']}"),
+        ("frames per second", summary["fps"]),
+        ("detector", summary["detector"]),
+    ]
+    width = max(len(name) for name, _ in rows)
+    typer.echo("\n".join(f"{name:<{width}}  {value}" for name, value in rows))
+    typer.echo(f"mosaic: {output}\nreport: {report_path}")
+
+
+@app.command()
+def build(
+    video: Annotated[Path, typer.Argument(help="Video file OpenCV reads, or a folder of frames.")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Mosaic image (PNG).")] = Path(
+        "mosaic.png"
+    ),
+    config_path: Annotated[
+        Path | None, typer.Option("--config", "-c", help="TOML config (see sample_config.toml).")
+    ] = None,
+    detector: Annotated[
+        str | None, typer.Option(help=f"Keypoint detector: {', '.join(DETECTORS)}.")
+    ] = None,
+    report: Annotated[
+        Path | None, typer.Option(help="Report JSON (default: next to the output, .json).")
+    ] = None,
+    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")] = None,
+    step: Annotated[int | None, typer.Option(help="Process every K-th frame.")] = None,
+    on_failure: Annotated[
+        str | None, typer.Option(help="stop | skip | restart (new mosaic segment).")
+    ] = None,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+) -> None:
+    """Build a retina mosaic from a video, streaming frame by frame."""
+    _setup_logging(verbose)
+    with _user_errors():
+        config = _config(
+            config_path, detector, max_frames=max_frames, step=step, on_failure=on_failure
+        )
+        output = check_output_path(output)
+        report_path = check_output_path(report or output.with_suffix(".json"))
+        builder = MosaicBuilder(config)
+        interrupted = False
+        with open_frames(video, config.pipeline.step, config.pipeline.max_frames) as frames:
+            info = frames.info
+            total = info.n_frames
+            if total is not None:
+                total = -(-total // config.pipeline.step)
+                if config.pipeline.max_frames:
+                    total = min(total, config.pipeline.max_frames)
+            registered = 0
+            try:
+                with (
+                    logging_redirect_tqdm(),
+                    tqdm(total=total, unit="frame", desc="mosaic", dynamic_ncols=True) as bar,
+                ):
+                    for frame in frames:
+                        record = builder.process(frame.index, frame.image, frame.error)
+                        registered += record.status == "registered"
+                        bar.set_postfix(registered=registered, refresh=False)
+                        bar.update()
+                        if builder.stopped:
+                            break
+            except KeyboardInterrupt:
+                interrupted = True
+                typer.echo("interrupted: writing the partial mosaic and report", err=True)
+        result = builder.finish(interrupted=interrupted)
+        extra = {"input": {**dataclasses.asdict(info), "path": str(info.path)}}
+        _write_outputs(result, output, report_path, extra)
+        _print_summary(result.report["summary"], output, report_path)
+    if interrupted:
+        raise typer.Exit(EXIT_INTERRUPTED)
+
+
+def _parse_size(size: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise InputError(f"size must look like 660x350, got {size!r}") from None
+    if width < 32 or height < 32:
+        raise InputError(f"size {size} is too small (at least 32x32)")
+    return width, height
+
+
+@app.command()
+def synth(
+    image: Annotated[
+        Path | None,
+        typer.Argument(help="Source fundus image (default: the shipped CC0 sample)."),
+    ] = None,
+    output: Annotated[Path, typer.Option("--output", "-o", help="Video (.mp4/.avi) or folder.")] = (
+        Path("synthetic.mp4")
+    ),
+    frames: Annotated[int, typer.Option(min=2, help="Number of frames.")] = 60,
+    size: Annotated[str, typer.Option(help="Frame size WIDTHxHEIGHT.")] = "660x350",
+    seed: Annotated[int, typer.Option(help="Random seed of the trajectory.")] = 0,
+    clean: Annotated[bool, typer.Option(help="No noise, blur or illumination changes.")] = False,
+) -> None:
+    """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json)."""
+    from mosaic.io import sample_image_path
+
+    _setup_logging(False)
+    with _user_errors():
+        params = SynthParams(
+            n_frames=frames, size=_parse_size(size), seed=seed, nuisances=not clean
+        )
+        gt = write_synthetic_video(image or sample_image_path(), output, params)
+        typer.echo(f"video: {output}\nground truth: {gt}")
+
+
+def _pair_result(
+    fixed: Path, moving: Path, config: Config, extractor: FeatureExtractor
+) -> dict[str, Any]:
+    registration = register_pair(read_image(fixed), read_image(moving), config, extractor)
+    H = registration.H_cur_to_prev
+    return {
+        "fixed": str(fixed),
+        "moving": str(moving),
+        "status": "registered" if registration.ok else "failed",
+        "reason": registration.reason,
+        "H_moving_to_fixed": None if H is None else np.asarray(H).tolist(),
+        "n_matches": registration.n_matches,
+        "n_inliers": registration.n_inliers,
+    }
+
+
+def _read_pairs(path: Path) -> list[tuple[Path, Path]]:
+    if not path.is_file():
+        raise InputError(f"pairs file not found: {path}")
+    with path.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows or not {"fixed", "moving"} <= set(rows[0]):
+        raise InputError(f"{path} must be a CSV with columns fixed,moving and at least one row")
+    base = path.parent
+    return [(base / r["fixed"], base / r["moving"]) for r in rows]
+
+
+@app.command()
+def register(
+    fixed: Annotated[Path | None, typer.Argument(help="Fixed image.")] = None,
+    moving: Annotated[Path | None, typer.Argument(help="Moving image.")] = None,
+    pairs: Annotated[
+        Path | None, typer.Option(help="CSV with columns fixed,moving: many pairs, JSON lines.")
+    ] = None,
+    config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
+    detector: Annotated[str | None, typer.Option(help=f"{', '.join(DETECTORS)}.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+) -> None:
+    """Register MOVING onto FIXED and print H_moving_to_fixed (full-resolution pixels)."""
+    _setup_logging(False)
+    with _user_errors():
+        config = _config(config_path, detector)
+        extractor = FeatureExtractor(config.features)
+        if pairs is not None:
+            for fixed_path, moving_path in _read_pairs(pairs):
+                typer.echo(json.dumps(_pair_result(fixed_path, moving_path, config, extractor)))
+            return
+        if fixed is None or moving is None:
+            raise InputError("give FIXED and MOVING images, or --pairs PAIRS.csv")
+        result = _pair_result(fixed, moving, config, extractor)
+        if as_json:
+            typer.echo(json.dumps(result, indent=2))
+            return
+        typer.echo(f"status: {result['status']}" + (f" ({result['reason']})" * bool(result["reason"])))
+        typer.echo(f"matches: {result['n_matches']}  inliers: {result['n_inliers']}")
+        if result["H_moving_to_fixed"] is not None:
+            H = np.array(result["H_moving_to_fixed"])
+            typer.echo("H_moving_to_fixed:\n" + np.array2string(H, precision=6, suppress_small=True))
+    if result["status"] != "registered":
+        raise typer.Exit(1)
+
+
+def main() -> None:
+    """Console entry point."""
+    app()

@@ -1,0 +1,224 @@
+"""Keypoint detectors (a registry chosen by name) and descriptors.
+
+Every detector returns `glampoints.Keypoints` (x, y float32 + scores) restricted to the frame's
+field-of-view mask. The descriptor is upright root-SIFT (orientation fixed to 0, the paper's
+choice for fundus images) unless `descriptor = "native"` asks for the detector's own.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from glampoints.descriptors import upright_rootsift
+from glampoints.detector import Keypoints
+from mosaic.config import FeaturesConfig
+from mosaic.errors import ConfigError
+from mosaic.preprocess import Prepared
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoints of one frame with one descriptor row per point."""
+
+    xy: np.ndarray  # (N, 2) float32, (x, y)
+    scores: np.ndarray  # (N,) float32
+    sizes: np.ndarray  # (N,) float32 keypoint diameter in px, for the SIFT descriptor
+    descriptors: np.ndarray  # (N, D) float32 (L2 distance) or uint8 (binary, Hamming distance)
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
+class Detector(Protocol):
+    """What the pipeline needs of a detector."""
+
+    name: str
+
+    def detect(self, gray: np.ndarray, mask: np.ndarray) -> tuple[Keypoints, np.ndarray]:
+        """Keypoints inside `mask` (uint8, nonzero = allowed) and their diameters in px."""
+        ...
+
+    def native(self, gray: np.ndarray, mask: np.ndarray) -> Features:
+        """Keypoints with the detector's own descriptor."""
+        ...
+
+
+def _strongest(n: int, scores: np.ndarray, limit: int) -> np.ndarray:
+    """Indices of the `limit` highest scores, strongest first."""
+    order = np.argsort(-scores, kind="stable")
+    return order[: min(n, limit)]
+
+
+class OpenCVDetector:
+    """A classical OpenCV detector (SIFT, ORB, AKAZE, KAZE, BRISK)."""
+
+    def __init__(self, name: str, factory: Callable[[], cv2.Feature2D], max_keypoints: int):
+        self.name = name
+        self._cv = factory()
+        self._max = max_keypoints
+
+    def _select(self, kps: tuple[cv2.KeyPoint, ...]) -> tuple[list[cv2.KeyPoint], np.ndarray]:
+        if not kps:
+            return [], np.zeros(0, np.intp)
+        xy = cv2.KeyPoint_convert(kps).astype(np.float32)
+        scores = np.fromiter((k.response for k in kps), np.float32, len(kps))
+        # Several orientations at one location are one point for an upright descriptor.
+        _, first = np.unique(np.round(xy, 2), axis=0, return_index=True)
+        keep = first[_strongest(len(first), scores[first], self._max)]
+        return [kps[i] for i in keep], keep
+
+    def detect(self, gray: np.ndarray, mask: np.ndarray) -> tuple[Keypoints, np.ndarray]:
+        kps, _ = self._select(self._cv.detect(gray, mask))
+        return _from_cv(kps)
+
+    def native(self, gray: np.ndarray, mask: np.ndarray) -> Features:
+        kps, desc = self._cv.detectAndCompute(gray, mask)
+        if desc is None or not kps:
+            return _empty(self._cv.descriptorSize(), np.uint8 if _binary(self._cv) else np.float32)
+        chosen, keep = self._select(tuple(kps))
+        keypoints, sizes = _from_cv(chosen)
+        return Features(keypoints.xy, keypoints.scores, sizes, desc[keep])
+
+
+def _binary(cv: cv2.Feature2D) -> bool:
+    return cv.defaultNorm() in (cv2.NORM_HAMMING, cv2.NORM_HAMMING2)
+
+
+def _from_cv(kps: list[cv2.KeyPoint]) -> tuple[Keypoints, np.ndarray]:
+    if not kps:
+        return Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.float32)), np.zeros(
+            0, np.float32
+        )
+    xy = cv2.KeyPoint_convert(kps).astype(np.float32).reshape(-1, 2)
+    scores = np.fromiter((k.response for k in kps), np.float32, len(kps))
+    sizes = np.fromiter((k.size for k in kps), np.float32, len(kps))
+    return Keypoints(xy, scores), sizes
+
+
+def _empty(dim: int, dtype: type) -> Features:
+    return Features(
+        np.zeros((0, 2), np.float32),
+        np.zeros(0, np.float32),
+        np.zeros(0, np.float32),
+        np.zeros((0, dim), dtype),
+    )
+
+
+class RandomGrid:
+    """The paper's baseline: points on a uniform grid with a random offset and jitter."""
+
+    name = "random-grid"
+
+    def __init__(self, max_keypoints: int, seed: int = 0):
+        self._max = max_keypoints
+        self._rng = np.random.default_rng(seed)
+
+    def detect(self, gray: np.ndarray, mask: np.ndarray) -> tuple[Keypoints, np.ndarray]:
+        h, w = gray.shape
+        area = max(int(np.count_nonzero(mask)), 1)
+        spacing = max(np.sqrt(area / self._max), 2.0)
+        ox, oy = self._rng.uniform(0, spacing, 2)
+        gx, gy = np.meshgrid(np.arange(ox, w, spacing), np.arange(oy, h, spacing))
+        xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
+        xy += self._rng.uniform(-spacing / 4, spacing / 4, xy.shape)
+        xy = np.clip(xy, 0, [w - 1, h - 1]).astype(np.float32)
+        inside = mask[xy[:, 1].astype(int), xy[:, 0].astype(int)] > 0
+        xy = xy[inside][: self._max]
+        return Keypoints(xy, np.ones(len(xy), np.float32)), np.full(len(xy), 0.0, np.float32)
+
+    def native(self, gray: np.ndarray, mask: np.ndarray) -> Features:
+        raise ConfigError("detector random-grid has no descriptor of its own; use rootsift")
+
+
+class GlamPointsDetector:
+    """Adapter of the learned GLAMpoints detector (the one place mosaic meets glampoints)."""
+
+    name = "glampoints"
+
+    def __init__(self, config: FeaturesConfig):
+        from glampoints.detector import GlamPoints
+
+        self._model = GlamPoints.from_pretrained(
+            config.weights or None,
+            nms_window_px=config.nms_window_px,
+            score_threshold=config.score_threshold,
+            max_keypoints=config.max_keypoints,
+        )
+
+    def detect(self, gray: np.ndarray, mask: np.ndarray) -> tuple[Keypoints, np.ndarray]:
+        keypoints = self._model.detect(gray, mask)
+        return keypoints, np.full(len(keypoints), 0.0, np.float32)
+
+    def native(self, gray: np.ndarray, mask: np.ndarray) -> Features:
+        raise ConfigError("detector glampoints has no descriptor of its own; use rootsift")
+
+
+def _xf(name: str) -> Callable[..., cv2.Feature2D]:
+    """An OpenCV 5 contrib factory (AKAZE, KAZE and BRISK moved to xfeatures2d)."""
+    return getattr(cv2.xfeatures2d, f"{name}_create")
+
+
+DETECTORS: dict[str, Callable[[FeaturesConfig], Detector]] = {
+    "glampoints": GlamPointsDetector,
+    "sift": lambda c: OpenCVDetector(
+        "sift", lambda: cv2.SIFT_create(nfeatures=2 * c.max_keypoints), c.max_keypoints
+    ),
+    "orb": lambda c: OpenCVDetector(
+        "orb", lambda: cv2.ORB_create(nfeatures=c.max_keypoints), c.max_keypoints
+    ),
+    "akaze": lambda c: OpenCVDetector("akaze", lambda: _xf("AKAZE")(), c.max_keypoints),
+    "kaze": lambda c: OpenCVDetector("kaze", lambda: _xf("KAZE")(), c.max_keypoints),
+    "brisk": lambda c: OpenCVDetector("brisk", lambda: _xf("BRISK")(), c.max_keypoints),
+    "random-grid": lambda c: RandomGrid(c.max_keypoints),
+}
+
+
+def make_detector(config: FeaturesConfig) -> Detector:
+    """Build the configured detector by name."""
+    try:
+        factory = DETECTORS[config.detector]
+    except KeyError:
+        raise ConfigError(
+            f"unknown detector {config.detector!r} (choices: {', '.join(DETECTORS)})"
+        ) from None
+    return factory(config)
+
+
+class FeatureExtractor:
+    """Detector + descriptor as configured: `prepared frame -> Features`."""
+
+    def __init__(self, config: FeaturesConfig, detector: Detector | None = None):
+        self.config = config
+        self.detector = detector if detector is not None else make_detector(config)
+        if config.descriptor == "native" and self.detector.name in ("glampoints", "random-grid"):
+            raise ConfigError(
+                f"detector {self.detector.name} has no descriptor of its own; "
+                "set [features] descriptor = \"rootsift\""
+            )
+
+    def detect(self, prepared: Prepared) -> Features:
+        """Keypoints of a frame; with native descriptors they come described already."""
+        if self.config.descriptor == "native":
+            return self.detector.native(prepared.gray, prepared.mask)
+        keypoints, sizes = self.detector.detect(prepared.gray, prepared.mask)
+        # Detectors without a scale (GLAMpoints, grid) get the configured descriptor size.
+        sizes = np.where(sizes > 0, sizes, self.config.descriptor_size_px).astype(np.float32)
+        return Features(keypoints.xy, keypoints.scores, sizes, np.zeros((len(sizes), 0), np.float32))
+
+    def describe(self, prepared: Prepared, detected: Features) -> Features:
+        """Attach upright root-SIFT descriptors to detected keypoints (no-op when native)."""
+        if detected.descriptors.shape[1] > 0 or self.config.descriptor == "native":
+            return detected
+        desc = upright_rootsift(prepared.gray, detected.xy, detected.sizes)
+        return Features(detected.xy, detected.scores, detected.sizes, desc)
+
+    def __call__(self, prepared: Prepared) -> Features:
+        return self.describe(prepared, self.detect(prepared))

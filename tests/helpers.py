@@ -1,0 +1,37 @@
+"""Geometry helpers for tests: known-homography views and corner errors."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def crop_pair(
+    image: np.ndarray, H_b_to_a: np.ndarray, origin: tuple[int, int], size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Two views a, b of `image`: a is a plain crop at `origin`; b maps into a by `H_b_to_a`."""
+    x0, y0 = origin
+    w, h = size
+    T = np.array([[1.0, 0, x0], [0, 1.0, y0], [0, 0, 1.0]])
+    a = image[y0 : y0 + h, x0 : x0 + w].copy()
+    H_b_to_image = T @ H_b_to_a
+    b = cv2.warpPerspective(image, H_b_to_image, (w, h), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    return a, b
+
+
+def similarity(angle_deg: float, scale: float, tx: float, ty: float, center=(0.0, 0.0)) -> np.ndarray:
+    """3x3 rotation+scale about `center`, then translation."""
+    A = cv2.getRotationMatrix2D(center, angle_deg, scale)
+    H = np.vstack([A, [0, 0, 1]])
+    H[0, 2] += tx
+    H[1, 2] += ty
+    return H
+
+
+def corner_error(H_est: np.ndarray, H_true: np.ndarray, size: tuple[int, int]) -> float:
+    """Mean distance in px between frame corners mapped by two homographies."""
+    w, h = size
+    corners = np.array([[0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1]], float).T
+    a = H_est @ corners
+    b = H_true @ corners
+    return float(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0).mean())

@@ -1,0 +1,147 @@
+"""The `mosaic` command line, driven through typer's CliRunner."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import mosaic.cli
+from mosaic.cli import app
+from tests.conftest import SAMPLE_IMAGE
+from tests.helpers import corner_error, crop_pair, similarity
+
+runner = CliRunner()
+FRAME_KEYS = {"index", "status", "H_to_canvas", "n_keypoints", "n_matches", "n_inliers", "time_ms"}
+
+
+@pytest.fixture(scope="module")
+def video(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "clip.mp4"
+    result = runner.invoke(
+        app, ["synth", str(SAMPLE_IMAGE), "-o", str(out), "--frames", "12", "--size", "400x300"]
+    )
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def _one_line_error(result, fragment: str) -> None:
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:"), result.output
+    assert fragment in lines[0]
+
+
+def test_synth_writes_video_and_ground_truth(video):
+    gt = json.loads(video.with_suffix(".gt.json").read_text())
+    assert len(gt["frames"]) == 12
+    cap = cv2.VideoCapture(str(video))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 12
+    assert (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))) == (400, 300)
+
+
+def test_build_writes_mosaic_and_report(video, tmp_path):
+    out = tmp_path / "mosaic.png"
+    result = runner.invoke(app, ["build", str(video), "-o", str(out), "--detector", "sift"])
+    assert result.exit_code == 0, result.output
+    mosaic = cv2.imread(str(out))
+    assert mosaic is not None and mosaic.shape[0] >= 300 and mosaic.shape[1] >= 400
+    report = json.loads((tmp_path / "mosaic.json").read_text())
+    assert report["summary"]["frames_read"] == 12
+    assert report["summary"]["frames_until_failure"] == 12
+    assert len(report["frames"]) == 12
+    assert all(FRAME_KEYS <= set(f) for f in report["frames"])
+    # Frame 0's corners land inside the written mosaic.
+    H0 = np.array(report["frames"][0]["H_to_canvas"])
+    corners = H0 @ np.array([[0, 0, 1], [399, 299, 1]], float).T
+    xy = corners[:2] / corners[2]
+    assert (xy >= -0.5).all() and (xy[0] <= mosaic.shape[1]).all() and (xy[1] <= mosaic.shape[0]).all()
+    assert "frames until failure" in result.output
+
+
+def test_build_options_step_and_max_frames(video, tmp_path):
+    out = tmp_path / "m.png"
+    report = tmp_path / "r.json"
+    args = ["build", str(video), "-o", str(out), "--report", str(report), "--step", "2",
+            "--max-frames", "4", "--detector", "orb"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    frames = json.loads(report.read_text())["frames"]
+    assert [f["index"] for f in frames] == [0, 2, 4, 6]
+
+
+@pytest.mark.parametrize(
+    ("make_input", "fragment"),
+    [
+        (lambda tmp: tmp / "missing.mp4", "missing.mp4"),
+        (lambda tmp: (tmp / "text.mp4").write_text("not a video") and tmp / "text.mp4", "text.mp4"),
+        (lambda tmp: (tmp / "empty").mkdir() or tmp / "empty", "empty"),
+    ],
+)
+def test_bad_inputs_give_one_line_errors(tmp_path, make_input, fragment):
+    path = make_input(tmp_path)
+    result = runner.invoke(app, ["build", str(path), "-o", str(tmp_path / "m.png")])
+    _one_line_error(result, fragment)
+
+
+def test_bad_config_and_output(video, tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[compose]\nblending = 'feather'\n")
+    result = runner.invoke(app, ["build", str(video), "-o", str(tmp_path / "m.png"), "-c", str(bad)])
+    _one_line_error(result, "blending")
+    result = runner.invoke(app, ["build", str(video), "-o", str(tmp_path / "nowhere" / "m.png")])
+    _one_line_error(result, "nowhere")
+    result = runner.invoke(app, ["build", str(video), "-o", str(tmp_path / "m.png"), "--detector", "surf"])
+    _one_line_error(result, "surf")
+
+
+def test_interrupt_writes_partial_mosaic_and_report(video, tmp_path, monkeypatch):
+    real_open = mosaic.cli.open_frames
+
+    class Interrupting:
+        def __init__(self, *args, **kwargs):
+            self._source = real_open(*args, **kwargs)
+            self.info = self._source.info
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self._source.close()
+
+        def __iter__(self):
+            for frame in self._source:
+                if frame.index == 5:
+                    raise KeyboardInterrupt
+                yield frame
+
+    monkeypatch.setattr(mosaic.cli, "open_frames", Interrupting)
+    out = tmp_path / "partial.png"
+    result = runner.invoke(app, ["build", str(video), "-o", str(out), "--detector", "sift"])
+    assert result.exit_code == 130
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["summary"]["interrupted"] is True
+    assert report["summary"]["frames_read"] == 5
+    assert cv2.imread(str(out)) is not None
+
+
+def test_register_prints_the_homography(fundus, tmp_path):
+    H_b_to_a = similarity(-6.0, 0.95, -20.0, 10.0, center=(240, 160))
+    a, b = crop_pair(fundus, H_b_to_a, origin=(500, 450), size=(480, 320))
+    cv2.imwrite(str(tmp_path / "a.png"), a)
+    cv2.imwrite(str(tmp_path / "b.png"), b)
+    args = ["register", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--json", "--detector", "sift"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout)
+    assert out["status"] == "registered"
+    assert corner_error(np.array(out["H_moving_to_fixed"]), H_b_to_a, (480, 320)) < 2.0
+    (tmp_path / "pairs.csv").write_text("fixed,moving\na.png,b.png\nb.png,a.png\n")
+    result = runner.invoke(app, ["register", "--pairs", str(tmp_path / "pairs.csv"), "--detector", "sift"])
+    lines = [json.loads(line) for line in result.stdout.splitlines()]
+    assert len(lines) == 2
+    assert corner_error(np.array(lines[1]["H_moving_to_fixed"]), np.linalg.inv(H_b_to_a), (480, 320)) < 2.0

@@ -1,0 +1,49 @@
+import numpy as np
+
+from mosaic.config import MatchingConfig
+from mosaic.matching import distance_matrix, match_descriptors
+
+
+def test_cross_check_recovers_a_permutation():
+    rng = np.random.default_rng(0)
+    a = rng.random((50, 128), dtype=np.float32)
+    perm = rng.permutation(50)
+    b = a[perm] + rng.normal(0, 1e-3, (50, 128)).astype(np.float32)
+    m = match_descriptors(a, b, MatchingConfig())
+    assert len(m) == 50
+    np.testing.assert_array_equal(perm[m.idx_b], m.idx_a)
+
+
+def test_cross_check_drops_non_mutual_matches():
+    a = np.array([[0.0, 0.0], [0.1, 0.0]], np.float32)  # both nearest to b[0]
+    b = np.array([[0.05, 0.0], [5.0, 5.0]], np.float32)
+    mutual = match_descriptors(a, b, MatchingConfig(cross_check=True))
+    assert len(mutual) == 1
+    oneway = match_descriptors(a, b, MatchingConfig(cross_check=False))
+    assert len(oneway) == 2
+
+
+def test_ratio_test_drops_ambiguous_matches():
+    a = np.array([[0.0, 0.0], [10.0, 0.0]], np.float32)
+    b = np.array([[1.0, 0.0], [-1.1, 0.0], [10.0, 0.5]], np.float32)  # a[0] is ambiguous
+    m = match_descriptors(a, b, MatchingConfig(cross_check=False, ratio=0.8))
+    assert m.idx_a.tolist() == [1]
+    assert m.idx_b.tolist() == [2]
+
+
+def test_hamming_distance_for_binary_descriptors():
+    a = np.array([[0b00000000], [0b11111111]], np.uint8)
+    b = np.array([[0b00000111]], np.uint8)
+    np.testing.assert_allclose(distance_matrix(a, b), [[3.0], [5.0]])
+
+
+def test_l2_distance_matches_direct_computation():
+    rng = np.random.default_rng(2)
+    a, b = rng.random((7, 16)), rng.random((5, 16))
+    direct = np.linalg.norm(a[:, None] - b[None], axis=2)
+    np.testing.assert_allclose(distance_matrix(a, b), direct, atol=1e-5)
+
+
+def test_empty_inputs():
+    m = match_descriptors(np.zeros((0, 128), np.float32), np.ones((3, 128), np.float32), MatchingConfig())
+    assert len(m) == 0

@@ -1,0 +1,132 @@
+"""End-to-end: synthetic videos with known trajectories through the whole pipeline."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from mosaic.config import Config, with_overrides
+from mosaic.io import open_frames
+from mosaic.pipeline import MosaicBuilder
+from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
+from tests.conftest import SAMPLE_IMAGE
+from tests.helpers import corner_error
+
+SIZE = (400, 300)
+
+
+def _config(**pipeline) -> Config:
+    return with_overrides(Config(), features={"detector": "sift"}, pipeline=pipeline or {})
+
+
+def _frames_folder(tmp_path: Path, n: int, seed: int = 3) -> tuple[Path, list[np.ndarray]]:
+    folder = tmp_path / "frames"
+    params = SynthParams(n_frames=n, size=SIZE, seed=seed, nuisances=False)
+    gt_path = write_synthetic_video(SAMPLE_IMAGE, folder, params)
+    return folder, load_ground_truth(gt_path)
+
+
+def _run(folder: Path, config: Config, corrupt: set[int] = frozenset(), bad: set[int] = frozenset()):
+    builder = MosaicBuilder(config)
+    with open_frames(folder) as frames:
+        for frame in frames:
+            image = frame.image
+            if frame.index in bad:  # an unregistrable frame (e.g. a blink): flat noise
+                rng = np.random.default_rng(frame.index)
+                image = rng.integers(0, 255, image.shape, dtype=np.uint8)
+            if frame.index in corrupt:
+                builder.process(frame.index, None, "corrupt frame")
+            else:
+                builder.process(frame.index, image, frame.error)
+            if builder.stopped:
+                break
+    return builder.finish()
+
+
+@pytest.fixture(scope="module")
+def video(tmp_path_factory):
+    return _frames_folder(tmp_path_factory.mktemp("video"), 24)
+
+
+def test_chained_homographies_follow_the_ground_truth(video):
+    folder, gt = video
+    result = _run(folder, _config())
+    summary = result.report["summary"]
+    assert summary["frames_read"] == 24
+    assert summary["registered"] == 24
+    assert summary["frames_until_failure"] == 24
+    assert summary["segments"] == 1
+    frames = result.report["frames"]
+    H0 = np.array(frames[0]["H_to_canvas"])
+    errors = []
+    for entry in frames[1:]:
+        H_i_to_0 = np.linalg.inv(H0) @ np.array(entry["H_to_canvas"])
+        H_true = np.linalg.inv(gt[0]) @ gt[entry["index"]]
+        errors.append(corner_error(H_i_to_0, H_true, SIZE))
+    assert np.mean(errors) < 3.0, errors
+    assert np.max(errors) < 6.0, errors
+
+
+def test_mosaic_pixels_agree_with_the_frames(video):
+    folder, _ = video
+    result = _run(folder, _config())
+    mosaic = result.main.image
+    frame_index = 12
+    entry = result.report["frames"][frame_index]
+    frame = cv2.imread(str(sorted(folder.glob("*.png"))[frame_index]))
+    H = np.array(entry["H_to_canvas"])
+    warped = cv2.warpPerspective(frame, H, (mosaic.shape[1], mosaic.shape[0]))
+    inside = cv2.warpPerspective(np.full(frame.shape[:2], 255, np.uint8), H, warped.shape[1::-1])
+    inside = cv2.erode(inside, np.ones((15, 15), np.uint8)) > 0
+    diff = np.abs(mosaic.astype(int) - warped.astype(int))[inside]
+    assert np.median(diff) < 6
+
+
+def test_skip_policy_drops_a_bad_frame_and_goes_on(video):
+    folder, _ = video
+    result = _run(folder, _config(on_failure="skip"), bad={5})
+    summary = result.report["summary"]
+    statuses = [f["status"] for f in result.report["frames"]]
+    assert statuses[5] == "failed" and statuses.count("registered") == 23
+    assert summary["frames_until_failure"] == 5
+    assert summary["longest_registered_run"] == 18
+    assert result.report["frames"][5]["H_to_canvas"] is None
+
+
+def test_stop_policy_ends_at_the_first_failure(video):
+    folder, _ = video
+    result = _run(folder, _config(on_failure="stop"), bad={7})
+    summary = result.report["summary"]
+    assert summary["frames_read"] == 8
+    assert summary["frames_until_failure"] == 7
+    assert summary["stopped_at_failure"]
+
+
+def test_restart_policy_starts_a_new_segment(video, tmp_path):
+    folder, _ = video
+    other, _ = _frames_folder(tmp_path, 6, seed=11)  # a cut to another part of the retina
+    images = [cv2.imread(str(p)) for p in sorted(folder.glob("*.png"))[:8]]
+    images += [cv2.imread(str(p)) for p in sorted(other.glob("*.png"))]
+    builder = MosaicBuilder(_config(on_failure="restart"))
+    for index, image in enumerate(images):
+        builder.process(index, image)
+    result = builder.finish()
+    frames = result.report["frames"]
+    assert len(result.segments) == 2
+    assert frames[8]["status"] == "failed" and frames[8]["segment"] == 1
+    assert {f["segment"] for f in frames[:8]} == {0}
+    assert {f["segment"] for f in frames[9:]} == {1}
+    assert [f["status"] for f in frames[9:]] == ["registered"] * 5
+    assert result.main.index == 0 and result.main.n_frames == 8
+
+
+def test_corrupt_frame_is_skipped_and_counted(video):
+    folder, _ = video
+    result = _run(folder, _config(), corrupt={4})
+    summary = result.report["summary"]
+    assert summary["skipped"] == 1 and summary["registered"] == 23
+    assert summary["frames_until_failure"] == 23
+    assert result.report["frames"][4]["reason"] == "corrupt frame"

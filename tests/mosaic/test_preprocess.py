@@ -1,0 +1,50 @@
+import cv2
+import numpy as np
+
+from mosaic.config import PreprocessConfig
+from mosaic.preprocess import field_of_view_mask, prepare
+
+
+def _disc_frame(h=200, w=300, radius=80):
+    frame = np.zeros((h, w, 3), np.uint8)
+    cv2.circle(frame, (w // 2, h // 2), radius, (40, 120, 200), -1)
+    # A dark vessel crossing the disc must stay inside the view.
+    cv2.line(frame, (w // 2 - 60, h // 2), (w // 2 + 60, h // 2), (5, 5, 5), 5)
+    return frame
+
+
+def test_fov_mask_is_the_disc_minus_the_erosion_margin():
+    frame = _disc_frame()
+    mask = field_of_view_mask(frame[:, :, 1], threshold=12, erode_px=6)
+    yy, xx = np.mgrid[:200, :300]
+    r = np.hypot(xx - 150, yy - 100)
+    assert mask[r < 70].min() == 255  # inside, vessel included
+    assert mask[r > 78].max() == 0  # border and erosion margin excluded
+    assert mask[100, 150] == 255  # on the dark vessel
+
+
+def test_prepare_uses_green_channel_and_enhances():
+    frame = _disc_frame()
+    config = PreprocessConfig(clahe=False, bilateral=False)
+    prepared = prepare(frame, config)
+    assert prepared.gray[70, 150] == 120  # green channel of (B, G, R) = (40, 120, 200)
+    luma = prepare(frame, PreprocessConfig(green_channel=False, clahe=False, bilateral=False))
+    assert luma.gray[70, 150] == round(0.114 * 40 + 0.587 * 120 + 0.299 * 200)
+
+
+def test_clahe_raises_local_contrast():
+    rng = np.random.default_rng(0)
+    low = (100 + rng.normal(0, 3, (128, 128))).clip(0, 255).astype(np.uint8)
+    frame = np.dstack([low] * 3)
+    plain = prepare(frame, PreprocessConfig(clahe=False, bilateral=False, fov_mask=False))
+    enhanced = prepare(frame, PreprocessConfig(bilateral=False, fov_mask=False))
+    assert enhanced.gray.std() > 2 * plain.gray.std()
+    assert plain.mask.min() == 255
+
+
+def test_bilateral_reduces_noise():
+    rng = np.random.default_rng(1)
+    noisy = (128 + rng.normal(0, 10, (128, 128))).clip(0, 255).astype(np.uint8)
+    frame = np.dstack([noisy] * 3)
+    out = prepare(frame, PreprocessConfig(clahe=False, fov_mask=False, bilateral_sigma_color=50.0))
+    assert out.gray.astype(float).std() < 0.6 * noisy.astype(float).std()
