@@ -11,9 +11,10 @@ Coordinates: pixel centres sit at integer coordinates (OpenCV's convention). The
 `H_ref_to_canvas` is the translation from reference-frame pixels into it.
 
 Seams: the image is warped bilinearly, and a warped pixel counts as valid only where *every*
-source pixel its bilinear sample touches is valid (the validity mask is warped linearly and
-thresholded at 1). So neither the dark outside of the field of view nor the zero border of the
-warp can leak into the mosaic, while integer placements keep every pixel, border included.
+source pixel its bilinear sample touches is valid (the weight map, -1e4 outside the valid
+region, is warped linearly with the same homography and thresholded at 0). So neither the dark
+outside of the field of view nor the zero border of the warp can leak into the mosaic, while
+integer placements keep every pixel, the frame's outermost ring included.
 """
 
 from __future__ import annotations
@@ -31,7 +32,9 @@ log = logging.getLogger(__name__)
 
 _MIN_SLACK_PX = 256  # buffer growth: at least this many pixels ...
 _SLACK_FRACTION = 0.25  # ... or this fraction of the needed extent, whichever is larger
-_VALID_THRESHOLD = 1.0 - 1e-4  # warped validity at or above this: all bilinear taps valid
+# Weight given to invalid pixels before warping: far below any bilinear mix of valid weights
+# (smallest nonzero OpenCV bilinear tap is 1/32^2), so "warped weight > 0" means all taps valid.
+_INVALID_WEIGHT = 1.0e4
 _EDGE_EPS = 1e-6  # tolerance when rounding a warped bounding box to whole pixels
 _MIN_W = 1e-9  # homogeneous coordinate under which a corner counts as sent to infinity
 
@@ -61,7 +64,8 @@ class Canvas:
         self._content: tuple[int, int, int, int] | None = None
         # Per-frame weight map cache (frames of one video share shape and often the mask).
         self._cache_key: tuple[tuple[int, int], np.ndarray | None] | None = None
-        self._cache_maps: tuple[np.ndarray, np.ndarray | None] | None = None
+        self._cache_weights: np.ndarray | None = None
+        self._feathered = config.blend == "feather" and config.feather_px > 0
         self._scratch_bufs: dict[str, np.ndarray] = {}
 
     # ----------------------------------------------------------------------------- queries
@@ -141,13 +145,20 @@ class Canvas:
         cn = self._channels
         M = _translation(-float(fx0), -float(fy0)) @ H
         flags, border = cv2.INTER_LINEAR, cv2.BORDER_CONSTANT
-        valid_map, weight_map = self._frame_maps((h, w), mask)
         warped = self._scratch("warped", rh, rw, cn, np.uint8)
         cv2.warpPerspective(image, M, (rw, rh), dst=warped, flags=flags, borderMode=border)
-        valid_w = self._scratch("valid_w", rh, rw, 1, np.float32)
-        cv2.warpPerspective(valid_map, M, (rw, rh), dst=valid_w, flags=flags, borderMode=border)
+        weight = self._scratch("weight", rh, rw, 1, np.float32)
+        cv2.warpPerspective(
+            self._frame_weights((h, w), mask),
+            M,
+            (rw, rh),
+            dst=weight,
+            flags=flags,
+            borderMode=border,
+            borderValue=-_INVALID_WEIGHT,
+        )
         valid = self._scratch("valid", rh, rw, 1, np.uint8)
-        cv2.compare(valid_w, _VALID_THRESHOLD, cv2.CMP_GE, dst=valid)  # 255: all taps valid
+        cv2.compare(weight, 0.0, cv2.CMP_GT, dst=valid)  # 255 where all bilinear taps valid
 
         bx, by = fx0 - self._buf_x0, fy0 - self._buf_y0
         sum_roi = self._sum[by : by + rh, bx : bx + rw]
@@ -159,22 +170,18 @@ class Canvas:
             np.copyto(warped_f, warped)
             cv2.copyTo(warped_f, valid, dst=sum_roi)
             cv2.copyTo(self._scratch("ones", rh, rw, 1, np.float32), valid, dst=weight_roi)
-        elif weight_map is None:  # average (or feather with feather_px = 0)
+        elif not self._feathered:  # average
             cv2.accumulate(warped, sum_roi, valid)
             cv2.accumulate(self._scratch("ones", rh, rw, 1, np.float32), weight_roi, valid)
         else:  # feather
-            weight_w = self._scratch("weight_w", rh, rw, 1, np.float32)
-            cv2.warpPerspective(
-                weight_map, M, (rw, rh), dst=weight_w, flags=flags, borderMode=border
-            )
-            weight_c = weight_w
+            weight_c = weight
             if cn > 1:
                 weight_c = self._scratch("weight_c", rh, rw, cn, np.float32)
-                cv2.merge([weight_w] * cn, dst=weight_c)
+                cv2.merge([weight] * cn, dst=weight_c)
             warped_f = self._scratch("warped_f", rh, rw, cn, np.float32)
             np.copyto(warped_f, warped)
             cv2.accumulateProduct(warped_f, weight_c, sum_roi, valid)
-            cv2.accumulate(weight_w, weight_roi, valid)
+            cv2.accumulate(weight, weight_roi, valid)
         self._content = union
         self._n_frames += 1
 
@@ -210,9 +217,9 @@ class Canvas:
         # means the whole frame stays on the finite side (no wrap through infinity).
         if not np.all(np.isfinite(mapped)) or np.any(mapped[:, 2] <= _MIN_W):
             return None, (
-                f"frame {self._n_frames} cannot be placed on the mosaic canvas: its homography "
-                f"sends part of the frame to infinity (degenerate registration); the canvas "
-                f"cap is {cap} px per side"
+                "cannot place the frame on the mosaic canvas: its homography sends part of it "
+                f"to infinity (degenerate registration), beyond the cap of {cap} px per side "
+                "([compose] max_canvas_px)"
             )
         xy = mapped[:, :2] / mapped[:, 2:]
         lo = np.floor(xy.min(axis=0) + _EDGE_EPS)
@@ -224,9 +231,9 @@ class Canvas:
         width, height = ux1 - ux0, uy1 - uy0
         if width > cap or height > cap:
             return None, (
-                f"frame {self._n_frames} would grow the mosaic canvas to "
-                f"{width:.0f}x{height:.0f} px (width x height), beyond the cap of {cap} px "
-                f"per side ([compose] max_canvas_px)"
+                f"adding the frame would grow the mosaic canvas to {width:.0f}x{height:.0f} px "
+                f"(width x height), beyond the cap of {cap} px per side "
+                "([compose] max_canvas_px)"
             )
         return (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])), None
 
@@ -242,32 +249,34 @@ class Canvas:
         cols = slice(x0 - self._buf_x0, x1 - self._buf_x0)
         return self._sum[rows, cols], self._weight[rows, cols]
 
-    def _frame_maps(
-        self, shape: tuple[int, int], mask: np.ndarray | None
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Per-frame float32 validity map (1 inside the mask) and feather weights (or None)."""
+    def _frame_weights(self, shape: tuple[int, int], mask: np.ndarray | None) -> np.ndarray:
+        """Per-frame float32 weight map: > 0 inside the valid region, -_INVALID_WEIGHT outside.
+
+        Feather: distance to the nearest invalid pixel or to just outside the frame border,
+        clipped at feather_px and normalised to (0, 1]; average / last: 1. The large negative
+        value outside makes the bilinearly warped map positive only where every tap is valid,
+        so one warp yields both the weight and the validity.
+        """
         key = self._cache_key
         if key is not None and key[0] == shape:
             same = (mask is None and key[1] is None) or (
                 mask is not None and key[1] is not None and np.array_equal(mask, key[1])
             )
             if same:
-                assert self._cache_maps is not None
-                return self._cache_maps
+                assert self._cache_weights is not None
+                return self._cache_weights
         valid = np.full(shape, 1, np.uint8) if mask is None else (mask != 0).astype(np.uint8)
-        valid_f = valid.astype(np.float32)
-        feather = self._config.feather_px
-        weight = None
-        if self._config.blend == "feather" and feather > 0:
-            # Distance to the nearest invalid pixel or to just outside the frame border,
-            # clipped at feather_px and normalised to (0, 1] inside the valid region.
+        if self._feathered:
+            feather = np.float32(self._config.feather_px)
             padded = cv2.copyMakeBorder(valid, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
             dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_5)[1:-1, 1:-1]
-            weight = np.ascontiguousarray(np.minimum(dist, np.float32(feather)))
-            weight *= np.float32(1.0 / feather)
+            weights = np.minimum(dist, feather) / feather
+        else:
+            weights = np.ones(shape, np.float32)
+        weights[valid == 0] = -_INVALID_WEIGHT
         self._cache_key = (shape, None if mask is None else mask.copy())
-        self._cache_maps = (valid_f, weight)
-        return self._cache_maps
+        self._cache_weights = np.ascontiguousarray(weights, dtype=np.float32)
+        return self._cache_weights
 
     def _scratch(self, name: str, h: int, w: int, cn: int, dtype: type) -> np.ndarray:
         """An (h, w[, cn]) view of a reused scratch array, grown on demand (never shrunk).

@@ -69,7 +69,7 @@ class SegmentMosaic:
     """A rendered mosaic segment and the map from its reference frame into the image."""
 
     index: int
-    image: np.ndarray  # uint8 HxWx3, cropped to the covered area
+    image: np.ndarray  # uint8 HxWx3, the bounding box of the placed frames
     H_ref_to_mosaic: np.ndarray
     n_frames: int
 
@@ -98,19 +98,6 @@ class _Timer:
         out = fn(*args)
         self._record.stage_ms[stage] = (time.perf_counter() - start) * 1e3
         return out
-
-
-def _crop_to_content(canvas: Canvas) -> tuple[np.ndarray, np.ndarray]:
-    """The rendered canvas cropped to covered pixels, and the translation that crop applies."""
-    image = canvas.render()
-    covered = canvas.coverage() > 0
-    if not covered.any():
-        return image[:0, :0], np.eye(3)
-    rows = np.flatnonzero(covered.any(axis=1))
-    cols = np.flatnonzero(covered.any(axis=0))
-    y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-    shift = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]])
-    return image[y0:y1, x0:x1], shift
 
 
 class MosaicBuilder:
@@ -232,11 +219,10 @@ class MosaicBuilder:
     def _close_segment(self) -> None:
         if self._canvas is None or self._canvas.n_frames == 0:
             return
-        image, shift = _crop_to_content(self._canvas)
+        canvas = self._canvas
         self._segments.append(
             SegmentMosaic(
-                len(self._segments), image, shift @ self._canvas.H_ref_to_canvas,
-                self._canvas.n_frames,
+                len(self._segments), canvas.render(), canvas.H_ref_to_canvas, canvas.n_frames
             )
         )
         self._canvas = None

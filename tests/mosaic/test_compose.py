@@ -1,0 +1,308 @@
+"""Mosaic canvas: placement, growth, blending and the size cap, against synthetic ground truth."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from mosaic.compose import Canvas
+from mosaic.config import ComposeConfig
+from mosaic.errors import CanvasLimitError
+
+BLENDS = ("feather", "average", "last")
+
+
+def translation(tx: float, ty: float) -> np.ndarray:
+    return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty], [0.0, 0.0, 1.0]])
+
+
+def similarity(angle_deg: float, scale: float, tx: float, ty: float) -> np.ndarray:
+    a = math.radians(angle_deg)
+    c, s = scale * math.cos(a), scale * math.sin(a)
+    return np.array([[c, -s, tx], [s, c, ty], [0.0, 0.0, 1.0]])
+
+
+def random_image(h: int, w: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+
+
+def smooth_field(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Smooth 3-channel test pattern (float, within [30, 225]) at arbitrary coordinates."""
+    r = 128 + 60 * np.sin(xs / 17.0) * np.cos(ys / 23.0) + 0.1 * xs
+    g = 128 + 70 * np.cos((xs + ys) / 29.0)
+    b = 128 + 50 * np.sin(ys / 13.0) + 0.15 * ys
+    return np.stack([r, g, b], axis=-1)
+
+
+def smooth_tile(x0: float, y0: float, h: int, w: int) -> np.ndarray:
+    """uint8 tile whose pixel (x, y) shows the smooth pattern at (x0 + x, y0 + y)."""
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    return np.clip(np.rint(smooth_field(xs + x0, ys + y0)), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("blend", BLENDS)
+def test_identity_renders_the_frame_exactly(blend: str) -> None:
+    image = random_image(60, 80)
+    canvas = Canvas(ComposeConfig(blend=blend))
+    assert canvas.shape == (0, 0) and canvas.n_frames == 0
+    assert canvas.render().shape == (0, 0, 3)
+
+    canvas.add(image, np.eye(3))
+
+    assert canvas.shape == (60, 80)
+    assert canvas.n_frames == 1
+    np.testing.assert_array_equal(canvas.H_ref_to_canvas, np.eye(3))
+    np.testing.assert_array_equal(canvas.render(), image)
+    assert canvas.coverage().dtype == np.uint8
+    assert np.all(canvas.coverage() == 255)
+
+
+@pytest.mark.parametrize("blend", BLENDS)
+def test_single_channel_tiles(blend: str) -> None:
+    base = random_image(60, 90)[..., 1].copy()
+    canvas = Canvas(ComposeConfig(blend=blend), channels=1)
+    canvas.add(base[:, 30:], np.eye(3))
+    np.testing.assert_array_equal(canvas.render()[..., 0], base[:, 30:])
+    canvas.add(base[:, :50], translation(-30, 0))
+    out = canvas.render()
+    assert out.shape == (60, 90, 1)
+    np.testing.assert_array_equal(out[..., 0], base)
+    with pytest.raises(ValueError, match="channel"):
+        canvas.add(random_image(60, 90), np.eye(3))
+
+
+@pytest.mark.parametrize("blend", BLENDS)
+def test_integer_tiles_reassemble_image_and_grow_up_left(blend: str) -> None:
+    base = random_image(120, 160, seed=1)
+    ref = base[40:120, 50:160]  # reference frame: top-left at base (50, 40)
+    tile = base[0:80, 0:110]  # lies at (-50, -40) in reference coords
+    canvas = Canvas(ComposeConfig(blend=blend))
+    canvas.add(ref, np.eye(3))
+    canvas.add(tile, translation(-50, -40))
+
+    assert canvas.shape == (120, 160)
+    np.testing.assert_array_equal(canvas.H_ref_to_canvas, translation(50, 40))
+    expected_cov = np.zeros((120, 160), bool)
+    expected_cov[40:120, 50:160] = True
+    expected_cov[0:80, 0:110] = True
+    np.testing.assert_array_equal(canvas.coverage() > 0, expected_cov)
+    out = canvas.render().astype(np.int16)
+    err = np.abs(out - base.astype(np.int16))
+    assert err[expected_cov].max() < 1
+    assert np.all(out[~expected_cov] == 0)
+
+
+@pytest.mark.parametrize("blend", ["average", "feather"])
+def test_subpixel_tiles_reconstruct_smooth_image(blend: str) -> None:
+    # Reference tile shows the pattern from (0, 0); the second from (-50.5, -40.25), so it sits
+    # at that (sub-pixel) translation in reference coords and must be resampled bilinearly.
+    h, w = 90, 120
+    canvas = Canvas(ComposeConfig(blend=blend, feather_px=15))
+    canvas.add(smooth_tile(0.0, 0.0, h, w), np.eye(3))
+    canvas.add(smooth_tile(-50.5, -40.25, h, w), translation(-50.5, -40.25))
+
+    # Union bbox: x in [-50.5, 119] -> pixels -51..119, y in [-40.25, 89] -> -41..89.
+    assert canvas.shape == (89 + 41 + 1, 119 + 51 + 1)
+    np.testing.assert_array_equal(canvas.H_ref_to_canvas, translation(51, 41))
+    out = canvas.render().astype(np.float64)
+    ys, xs = np.mgrid[0 : canvas.shape[0], 0 : canvas.shape[1]].astype(np.float64)
+    truth = smooth_field(xs - 51, ys - 41)
+    # Interior of the union (2 px away from every tile border).
+    interior = np.zeros(canvas.shape, bool)
+    interior[41 + 2 : 41 + h - 2, 51 + 2 : 51 + w - 2] = True
+    interior[2 : h - 2, 2 : w - 2] = True
+    err = np.abs(out - truth)[interior]
+    assert err.max() < 1.5  # bilinear resampling of a smooth field + two uint8 roundings
+    assert err.mean() < 0.5
+    # The second tile's sub-pixel border is never sampled half outside the frame.
+    cov = canvas.coverage() > 0
+    assert not cov[0, :].any() and cov[1, 1 : 1 + w - 1].all()
+
+
+@pytest.mark.parametrize("blend", BLENDS)
+def test_landmark_lands_where_homographies_predict(blend: str) -> None:
+    h, w = 100, 140
+    dot_xy = (30.0, 70.0)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    dot = 250 * np.exp(-((xs - dot_xy[0]) ** 2 + (ys - dot_xy[1]) ** 2) / (2 * 2.0**2))
+    frame = np.repeat(np.rint(dot).astype(np.uint8)[..., None], 3, axis=2)
+    H = similarity(25.0, 1.3, -40.0, 15.0)
+    H[2, :2] = (2e-4, -1e-4)  # a little perspective too
+
+    canvas = Canvas(ComposeConfig(blend=blend))
+    canvas.add(np.zeros((h, w, 3), np.uint8), np.eye(3))  # dark reference frame
+    canvas.add(frame, H)
+
+    predicted = canvas.H_ref_to_canvas @ H @ np.array([dot_xy[0], dot_xy[1], 1.0])
+    predicted = predicted[:2] / predicted[2]
+    assert canvas.H_ref_to_canvas[0, 2] > 0  # the warped frame reaches negative x
+    img = canvas.render()[..., 1].astype(np.float64)
+    py, px = np.mgrid[0 : img.shape[0], 0 : img.shape[1]]
+    near = (px - predicted[0]) ** 2 + (py - predicted[1]) ** 2 < 12**2
+    weights = np.where(near & (img > 20), img, 0.0)
+    assert weights.sum() > 0
+    centroid = np.array([(px * weights).sum(), (py * weights).sum()]) / weights.sum()
+    assert np.linalg.norm(centroid - predicted) < 1.0
+    peak_y, peak_x = np.unravel_index(np.argmax(img), img.shape)
+    assert abs(peak_x - predicted[0]) <= 1 and abs(peak_y - predicted[1]) <= 1
+
+
+def test_last_blend_later_frame_wins() -> None:
+    red = np.zeros((60, 80, 3), np.uint8)
+    red[...] = (0, 0, 200)
+    blue = np.zeros((60, 80, 3), np.uint8)
+    blue[...] = (180, 10, 0)
+    canvas = Canvas(ComposeConfig(blend="last"))
+    canvas.add(red, np.eye(3))
+    canvas.add(blue, translation(30, 20))
+
+    out = canvas.render()
+    assert canvas.shape == (80, 110)
+    assert np.all(out[20:80, 30:110] == (180, 10, 0))  # the whole second frame, overlap included
+    assert np.all(out[0:20, 0:80] == (0, 0, 200))
+    assert np.all(out[20:60, 0:30] == (0, 0, 200))
+    assert np.all(out[0:20, 80:110] == 0) and np.all(out[60:80, 0:30] == 0)
+
+
+def _seam_profile(blend: str) -> np.ndarray:
+    dark = np.full((80, 120, 3), 100, np.uint8)
+    bright = np.full((80, 120, 3), 160, np.uint8)
+    canvas = Canvas(ComposeConfig(blend=blend, feather_px=20))
+    canvas.add(dark, np.eye(3))
+    canvas.add(bright, translation(60, 0))  # overlap: x in [60, 120)
+    assert canvas.shape == (80, 180)
+    return canvas.render()[40, :, 0].astype(np.int16)
+
+
+def test_feather_blend_is_smooth_across_seam() -> None:
+    row = _seam_profile("feather")
+    assert np.all(row[:60] == 100) and np.all(row[120:] == 160)
+    steps = np.diff(row)
+    assert steps.min() >= 0  # monotonic ramp from the dark to the bright frame
+    assert steps.max() <= 5  # 60 grey levels spread over the 20 px feather ramps
+    # Average, by contrast, jumps by half the difference at each frame edge.
+    avg_steps = np.diff(_seam_profile("average"))
+    assert avg_steps.max() >= 29
+
+
+def test_far_placement_raises_and_leaves_canvas_unchanged() -> None:
+    image = random_image(50, 70, seed=3)
+    canvas = Canvas(ComposeConfig(blend="feather"))
+    canvas.add(image, np.eye(3))
+    canvas.add(image, translation(10, -5))
+    before = (canvas.shape, canvas.render(), canvas.coverage(), canvas.H_ref_to_canvas)
+
+    far = translation(1e5, 0)
+    assert not canvas.fits(far, (50, 70))
+    with pytest.raises(CanvasLimitError, match=r"8000 px") as info:
+        canvas.add(image, far)
+    assert "100070x55" in str(info.value)  # the size it would reach, width x height
+    assert "max_canvas_px" in str(info.value)
+
+    assert canvas.n_frames == 2
+    assert canvas.shape == before[0]
+    np.testing.assert_array_equal(canvas.render(), before[1])
+    np.testing.assert_array_equal(canvas.coverage(), before[2])
+    np.testing.assert_array_equal(canvas.H_ref_to_canvas, before[3])
+
+
+def test_cap_boundary_and_buffer_stay_within_cap() -> None:
+    image = random_image(100, 100, seed=4)
+    canvas = Canvas(ComposeConfig(max_canvas_px=300))
+    assert canvas.fits(np.eye(3), (100, 100))
+    canvas.add(image, np.eye(3))
+    assert canvas.fits(translation(200, 0), (100, 100))  # union exactly 300 px wide
+    assert not canvas.fits(translation(201, 0), (100, 100))
+    assert not canvas.fits(translation(-201, 0), (100, 100))
+    assert not canvas.fits(translation(0, 200.5), (100, 100))
+    canvas.add(image, translation(200, 0))
+    assert canvas.shape == (100, 300)
+    with pytest.raises(CanvasLimitError):
+        canvas.add(image, translation(0, 201))
+    assert canvas.shape == (100, 300) and canvas.n_frames == 2
+    # Memory stays bounded by the cap: the growth slack never pushes a buffer side past it.
+    assert max(canvas._weight.shape) <= 300
+
+
+def test_degenerate_homography_is_refused() -> None:
+    canvas = Canvas(ComposeConfig())
+    H = np.eye(3)
+    H[2, 0] = -0.02  # the line at infinity crosses the frame (x = 50)
+    assert not canvas.fits(H, (60, 80))
+    with pytest.raises(CanvasLimitError, match="infinity"):
+        canvas.add(random_image(60, 80), H)
+    assert canvas.shape == (0, 0) and canvas.n_frames == 0
+
+
+@pytest.mark.parametrize("blend", BLENDS)
+def test_masked_border_never_leaks_dark_pixels(blend: str) -> None:
+    h, w = 90, 120
+    frame = np.zeros((h, w, 3), np.uint8)
+    frame[10:-10, 10:-10] = 200
+    border_mask = np.zeros((h, w), np.uint8)
+    border_mask[10:-10, 10:-10] = 255
+    disc_mask = np.zeros((h, w), np.uint8)
+    cv2.circle(disc_mask, (60, 45), 33, 255, -1)  # inside the bright area
+
+    canvas = Canvas(ComposeConfig(blend=blend, feather_px=10))
+    canvas.add(frame, np.eye(3), border_mask)
+    canvas.add(frame, similarity(10.0, 1.1, 15.3, 7.7), border_mask)
+    canvas.add(frame, similarity(-7.0, 0.9, -20.6, 30.2), disc_mask)
+
+    cov = canvas.coverage() > 0
+    out = canvas.render()
+    assert np.all(out[cov] == 200)  # no dark pixel anywhere on the covered canvas
+    assert np.all(out[~cov] == 0)
+    # ... without eroding the valid region away: the identity frame keeps all its pixels.
+    T = canvas.H_ref_to_canvas
+    ox, oy = int(T[0, 2]), int(T[1, 2])
+    assert cov[oy + 10 : oy + h - 10, ox + 10 : ox + w - 10].all()
+    assert not cov[oy + 9, ox + 11 : ox + 20].any()  # the masked band stays uncovered
+
+
+@pytest.mark.parametrize("blend", BLENDS)
+def test_many_frames_growing_in_all_directions(
+    blend: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A walk over a large known image (left, up, right, down, with jitter): the canvas
+    # re-allocates in every direction and must still show exactly the image wherever a frame
+    # covered it; the growth slack keeps the re-allocations few.
+    bh, bw, fh, fw = 1000, 1400, 60, 80
+    base = random_image(bh, bw, seed=5)
+    rng = np.random.default_rng(6)
+    ref_xy = np.array([700, 500])
+    corners = [ref_xy, (0, 500), (0, 0), (bw - fw, 0), (bw - fw, bh - fh)]
+    offsets = []
+    for a, b in itertools.pairwise(corners):
+        n = int(np.abs(np.subtract(b, a)).max() // 40) + 1
+        for t in np.linspace(0.0, 1.0, n, endpoint=False):
+            jitter = rng.integers(-5, 6, size=2)
+            xy = np.rint(np.add(a, t * np.subtract(b, a))).astype(int) + jitter
+            offsets.append(np.clip(xy, 0, [bw - fw, bh - fh]))
+    offsets[0] = ref_xy
+    canvas = Canvas(ComposeConfig(blend=blend))
+    covered = np.zeros((bh, bw), bool)
+    with caplog.at_level(logging.DEBUG, logger="mosaic.compose"):
+        for x, y in offsets:
+            canvas.add(base[y : y + fh, x : x + fw], translation(x - ref_xy[0], y - ref_xy[1]))
+            covered[y : y + fh, x : x + fw] = True
+    growths = sum("canvas buffer" in r.getMessage() for r in caplog.records)
+    assert 4 <= growths <= 12, growths  # first allocation + a few amortised growths
+
+    xs = [o[0] for o in offsets]
+    ys = [o[1] for o in offsets]
+    x0, y0 = min(xs), min(ys)
+    assert canvas.shape == (max(ys) + fh - y0, max(xs) + fw - x0)
+    np.testing.assert_array_equal(
+        canvas.H_ref_to_canvas, translation(ref_xy[0] - x0, ref_xy[1] - y0)
+    )
+    window = (slice(y0, max(ys) + fh), slice(x0, max(xs) + fw))
+    np.testing.assert_array_equal(canvas.coverage() > 0, covered[window])
+    out = canvas.render()
+    np.testing.assert_array_equal(out[covered[window]], base[window][covered[window]])
+    assert canvas.n_frames == len(offsets)
