@@ -37,13 +37,15 @@ def _sift() -> cv2.SIFT:
     return _SIFT
 
 
-def upright_rootsift(image_gray: np.ndarray, xy: np.ndarray, size_px: float = 10.0) -> np.ndarray:
+def upright_rootsift(
+    image_gray: np.ndarray, xy: np.ndarray, size_px: float | np.ndarray = 10.0
+) -> np.ndarray:
     """(N,128) float32 upright root-SIFT descriptors of uint8 HxW `image_gray` at points `xy`.
 
     One row per input point, in input order (OpenCV's output is re-indexed through the
     keypoints' class_id, so a dropped or re-ordered keypoint cannot shift rows; a point OpenCV
     returns no descriptor for gets a zero row). `size_px` is the keypoint diameter given to
-    SIFT, which sets the descriptor's support region.
+    SIFT, which sets the descriptor's support region: one value, or one per point.
     """
     pts = np.asarray(xy, dtype=np.float32).reshape(-1, 2)
     n = len(pts)
@@ -54,12 +56,12 @@ def upright_rootsift(image_gray: np.ndarray, xy: np.ndarray, size_px: float = 10
         raise ValueError(
             f"image must be uint8 HxW grey, got {image_gray.dtype} of shape {image_gray.shape}"
         )
-    size = float(size_px)
+    sizes = np.broadcast_to(np.asarray(size_px, dtype=np.float32), (n,)).tolist()
     # cv2.KeyPoint.convert cannot set angle=0 (it leaves -1, i.e. a 1 degree rotation), so the
     # keypoints are built here; class_id carries the input row.
     kps = [
         cv2.KeyPoint(float(x), float(y), size, 0.0, 0.0, 0, i)
-        for i, (x, y) in enumerate(pts.tolist())
+        for i, ((x, y), size) in enumerate(zip(pts.tolist(), sizes, strict=True))
     ]
     kps_out, desc = _sift().compute(image_gray, kps)
     if desc is None or len(kps_out) == 0:

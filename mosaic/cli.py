@@ -7,9 +7,9 @@ on stderr and exit code 2; Ctrl-C during `build` still writes the partial mosaic
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import logging
-import dataclasses
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -266,11 +266,15 @@ def register(
         if as_json:
             typer.echo(json.dumps(result, indent=2))
             return
-        typer.echo(f"status: {result['status']}" + (f" ({result['reason']})" * bool(result["reason"])))
+        typer.echo(
+            f"status: {result['status']}" + (f" ({result['reason']})" * bool(result["reason"]))
+        )
         typer.echo(f"matches: {result['n_matches']}  inliers: {result['n_inliers']}")
         if result["H_moving_to_fixed"] is not None:
             H = np.array(result["H_moving_to_fixed"])
-            typer.echo("H_moving_to_fixed:\n" + np.array2string(H, precision=6, suppress_small=True))
+            typer.echo(
+                "H_moving_to_fixed:\n" + np.array2string(H, precision=6, suppress_small=True)
+            )
     if result["status"] != "registered":
         raise typer.Exit(1)
 

@@ -38,7 +38,9 @@ class FeaturesConfig:
     """Keypoint detector and descriptor."""
 
     detector: str = "sift"  # a key of mosaic.features.DETECTORS
-    descriptor: str = "rootsift"  # "rootsift": upright root-SIFT (the paper's); "native": detector's own
+    descriptor: str = (
+        "rootsift"  # "rootsift": upright root-SIFT (the paper's); "native": detector's own
+    )
     max_keypoints: int = 1000  # strongest kept per frame
     nms_window_px: int = 10  # GLAMpoints non-maximum suppression window (paper: 10)
     score_threshold: float = 0.0  # GLAMpoints minimum score of a keypoint
@@ -124,7 +126,7 @@ def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
     where = f"[{table}] {key}"
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
-    if expected is not bool and isinstance(value, bool) or not isinstance(value, expected):
+    if (expected is not bool and isinstance(value, bool)) or not isinstance(value, expected):
         raise ConfigError(
             f"config {where} must be {expected.__name__}, got {type(value).__name__} {value!r}"
         )
@@ -158,9 +160,7 @@ def config_from_dict(raw: dict[str, Any]) -> Config:
     built = {}
     for table, value in raw.items():
         if table not in tables:
-            raise ConfigError(
-                f"unknown config table [{table}] (known: {', '.join(tables)})"
-            )
+            raise ConfigError(f"unknown config table [{table}] (known: {', '.join(tables)})")
         built[table] = _build_table(table, get_type_hints(Config)[table], value)
     return Config(**built)
 

@@ -166,17 +166,23 @@ def _xf(name: str) -> Callable[..., cv2.Feature2D]:
     return getattr(cv2.xfeatures2d, f"{name}_create")
 
 
+# Thresholds sit below OpenCV's defaults: low-contrast retina gives the defaults only a few
+# dozen points per frame, so each detector over-detects and the strongest `max_keypoints` stay.
 DETECTORS: dict[str, Callable[[FeaturesConfig], Detector]] = {
     "glampoints": GlamPointsDetector,
     "sift": lambda c: OpenCVDetector(
-        "sift", lambda: cv2.SIFT_create(nfeatures=2 * c.max_keypoints), c.max_keypoints
+        "sift",
+        lambda: cv2.SIFT_create(nfeatures=2 * c.max_keypoints, contrastThreshold=0.01),
+        c.max_keypoints,
     ),
     "orb": lambda c: OpenCVDetector(
-        "orb", lambda: cv2.ORB_create(nfeatures=c.max_keypoints), c.max_keypoints
+        "orb", lambda: cv2.ORB_create(nfeatures=c.max_keypoints, fastThreshold=5), c.max_keypoints
     ),
-    "akaze": lambda c: OpenCVDetector("akaze", lambda: _xf("AKAZE")(), c.max_keypoints),
-    "kaze": lambda c: OpenCVDetector("kaze", lambda: _xf("KAZE")(), c.max_keypoints),
-    "brisk": lambda c: OpenCVDetector("brisk", lambda: _xf("BRISK")(), c.max_keypoints),
+    "akaze": lambda c: OpenCVDetector(
+        "akaze", lambda: _xf("AKAZE")(threshold=1e-4), c.max_keypoints
+    ),
+    "kaze": lambda c: OpenCVDetector("kaze", lambda: _xf("KAZE")(threshold=1e-4), c.max_keypoints),
+    "brisk": lambda c: OpenCVDetector("brisk", lambda: _xf("BRISK")(thresh=10), c.max_keypoints),
     "random-grid": lambda c: RandomGrid(c.max_keypoints),
 }
 
@@ -201,7 +207,7 @@ class FeatureExtractor:
         if config.descriptor == "native" and self.detector.name in ("glampoints", "random-grid"):
             raise ConfigError(
                 f"detector {self.detector.name} has no descriptor of its own; "
-                "set [features] descriptor = \"rootsift\""
+                'set [features] descriptor = "rootsift"'
             )
 
     def detect(self, prepared: Prepared) -> Features:
@@ -211,7 +217,9 @@ class FeatureExtractor:
         keypoints, sizes = self.detector.detect(prepared.gray, prepared.mask)
         # Detectors without a scale (GLAMpoints, grid) get the configured descriptor size.
         sizes = np.where(sizes > 0, sizes, self.config.descriptor_size_px).astype(np.float32)
-        return Features(keypoints.xy, keypoints.scores, sizes, np.zeros((len(sizes), 0), np.float32))
+        return Features(
+            keypoints.xy, keypoints.scores, sizes, np.zeros((len(sizes), 0), np.float32)
+        )
 
     def describe(self, prepared: Prepared, detected: Features) -> Features:
         """Attach upright root-SIFT descriptors to detected keypoints (no-op when native)."""

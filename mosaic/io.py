@@ -38,6 +38,10 @@ IMAGE_WRITE_SUFFIXES: frozenset[str] = frozenset(
 #: Consecutive failed reads after which a video stream is considered finished.
 MAX_CONSECUTIVE_FAILURES = 5
 
+# Process umask, read once: temporary files are created 0600 and get the usual mode on replace.
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
 
 @dataclass(frozen=True)
 class VideoInfo:
@@ -360,13 +364,11 @@ def open_frames(path: str | Path, step: int = 1, max_frames: int = 0) -> FrameSo
 # --------------------------------------------------------------------------------------------
 
 
-def check_output_path(
-    path: str | Path, suffixes: frozenset[str] | None = IMAGE_WRITE_SUFFIXES
-) -> Path:
+def check_output_path(path: str | Path, suffixes: frozenset[str] | None = None) -> Path:
     """Fail early if `path` cannot be written: missing / read-only folder or unsupported format.
 
-    `suffixes` are the accepted (lower-case) suffixes; the default is the image formats OpenCV
-    writes for the mosaic, None accepts any suffix.
+    `suffixes` are the accepted (lower-case) suffixes; by default (None) the image formats
+    OpenCV writes for the mosaic plus `.json` (the run report).
     """
     p = Path(path).expanduser()
     parent = p.parent
@@ -376,13 +378,12 @@ def check_output_path(
         raise OutputError(f"output folder is not writable: {parent}")
     if p.is_dir():
         raise OutputError(f"output path is a folder, expected a file: {p}")
-    if suffixes is not None:
-        suffix = p.suffix.lower()
-        if suffix not in suffixes or (
-            suffixes is IMAGE_WRITE_SUFFIXES and not cv2.haveImageWriter(p.name)
-        ):
-            kinds = ", ".join(sorted(s.lstrip(".") for s in suffixes))
-            raise OutputError(f"unsupported output format '{p.suffix}' (use {kinds}): {p}")
+    allowed = IMAGE_WRITE_SUFFIXES | {".json"} if suffixes is None else suffixes
+    suffix = p.suffix.lower()
+    image_ok = suffix not in IMAGE_WRITE_SUFFIXES or cv2.haveImageWriter(p.name)
+    if suffix not in allowed or not image_ok:
+        kinds = ", ".join(sorted(s.lstrip(".") for s in allowed))
+        raise OutputError(f"unsupported output format '{p.suffix}' (use {kinds}): {p}")
     return p
 
 
@@ -397,6 +398,7 @@ def _atomic_write_bytes(path: Path, data: bytes) -> None:
         ) as tmp:
             tmp_name = tmp.name
             tmp.write(data)
+        os.chmod(tmp_name, 0o666 & ~_UMASK)
         os.replace(tmp_name, path)
     except OSError as exc:
         if tmp_name is not None and os.path.exists(tmp_name):

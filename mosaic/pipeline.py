@@ -120,7 +120,9 @@ class MosaicBuilder:
         self._H_prev_to_ref = np.eye(3)
         self._started = time.perf_counter()
 
-    def process(self, index: int, image: np.ndarray | None, error: str | None = None) -> FrameRecord:
+    def process(
+        self, index: int, image: np.ndarray | None, error: str | None = None
+    ) -> FrameRecord:
         """Register and compose one frame; a frame that could not be decoded is skipped."""
         record = FrameRecord(index=index)
         self.records.append(record)
@@ -140,12 +142,18 @@ class MosaicBuilder:
             self._start_segment(record, image, prepared, features, timer, reason=None)
         else:
             matches = timer.run(
-                "match", match_descriptors, self._prev.descriptors, features.descriptors,
+                "match",
+                match_descriptors,
+                self._prev.descriptors,
+                features.descriptors,
                 self.config.matching,
             )
             registration = timer.run(
-                "estimate", estimate_homography, features.xy[matches.idx_b],
-                self._prev.xy[matches.idx_a], self.config.registration,
+                "estimate",
+                estimate_homography,
+                features.xy[matches.idx_b],
+                self._prev.xy[matches.idx_a],
+                self.config.registration,
             )
             record.n_matches, record.n_inliers = registration.n_matches, registration.n_inliers
             record.reproj_error_px = registration.reproj_error_px

@@ -179,12 +179,12 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
     reach = float(np.linalg.norm(mapped[..., :2] / mapped[..., 2:], axis=-1).max())
 
     base = 1.0  # source px per frame px at zoom 1; < 1 zooms in when the source is too small
-    usable = 0.6 * (r_fov - margin)
+    usable = 0.65 * (r_fov - margin)  # at most this much of the radius for the viewport
+    if usable <= 1.0:
+        raise InputError(f"source image field of view too small (radius {r_fov:.0f} px)")
     if reach > usable:
         base = usable / reach
         log.info("viewport %dx%d too large for the source's view: zooming in x%.2f", w, h, 1 / base)
-    if usable <= 1.0:
-        raise InputError(f"source image field of view too small (radius {r_fov:.0f} px)")
     A[:, :2, :] *= base  # scales the mapped x, y (not w) of every point by `base`
     reach *= base
 

@@ -15,11 +15,15 @@ def crop_pair(
     T = np.array([[1.0, 0, x0], [0, 1.0, y0], [0, 0, 1.0]])
     a = image[y0 : y0 + h, x0 : x0 + w].copy()
     H_b_to_image = T @ H_b_to_a
-    b = cv2.warpPerspective(image, H_b_to_image, (w, h), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+    b = cv2.warpPerspective(
+        image, H_b_to_image, (w, h), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR
+    )
     return a, b
 
 
-def similarity(angle_deg: float, scale: float, tx: float, ty: float, center=(0.0, 0.0)) -> np.ndarray:
+def similarity(
+    angle_deg: float, scale: float, tx: float, ty: float, center=(0.0, 0.0)
+) -> np.ndarray:
     """3x3 rotation+scale about `center`, then translation."""
     A = cv2.getRotationMatrix2D(center, angle_deg, scale)
     H = np.vstack([A, [0, 0, 1]])

@@ -45,5 +45,7 @@ def test_l2_distance_matches_direct_computation():
 
 
 def test_empty_inputs():
-    m = match_descriptors(np.zeros((0, 128), np.float32), np.ones((3, 128), np.float32), MatchingConfig())
+    m = match_descriptors(
+        np.zeros((0, 128), np.float32), np.ones((3, 128), np.float32), MatchingConfig()
+    )
     assert len(m) == 0

@@ -29,7 +29,9 @@ def _frames_folder(tmp_path: Path, n: int, seed: int = 3) -> tuple[Path, list[np
     return folder, load_ground_truth(gt_path)
 
 
-def _run(folder: Path, config: Config, corrupt: set[int] = frozenset(), bad: set[int] = frozenset()):
+def _run(
+    folder: Path, config: Config, corrupt: set[int] = frozenset(), bad: set[int] = frozenset()
+):
     builder = MosaicBuilder(config)
     with open_frames(folder) as frames:
         for frame in frames:
@@ -107,9 +109,9 @@ def test_stop_policy_ends_at_the_first_failure(video):
 
 def test_restart_policy_starts_a_new_segment(video, tmp_path):
     folder, _ = video
-    other, _ = _frames_folder(tmp_path, 6, seed=11)  # a cut to another part of the retina
+    other, _ = _frames_folder(tmp_path, 6, seed=11)  # a cut to another view (mirrored)
     images = [cv2.imread(str(p)) for p in sorted(folder.glob("*.png"))[:8]]
-    images += [cv2.imread(str(p)) for p in sorted(other.glob("*.png"))]
+    images += [cv2.flip(cv2.imread(str(p)), 1) for p in sorted(other.glob("*.png"))]
     builder = MosaicBuilder(_config(on_failure="restart"))
     for index, image in enumerate(images):
         builder.process(index, image)

@@ -1,0 +1,211 @@
+"""Synthetic videos: exact ground truth, trajectory inside the source's view, files, determinism."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from mosaic.errors import ConfigError, InputError, OutputError
+from mosaic.io import open_frames, sample_image_path
+from mosaic.synth import (
+    SynthParams,
+    corner_error,
+    estimate_fov_disc,
+    gt_path_for,
+    load_ground_truth,
+    plan_trajectory,
+    relative_homographies,
+    render_frames,
+    write_synthetic_video,
+)
+
+SIZE = (240, 160)
+CLEAN = {"nuisances": False, "aperture": False}
+
+
+@pytest.fixture(scope="module")
+def source(fundus) -> np.ndarray:
+    """Half-resolution fundus image: faster warps, same field-of-view geometry."""
+    return cv2.resize(fundus, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+
+
+@pytest.fixture(scope="module")
+def clean_video(source):
+    params = SynthParams(n_frames=12, size=SIZE, seed=4, max_step_px=8.0, **CLEAN)
+    frames, Hs = zip(*render_frames(source, params), strict=True)
+    return params, list(frames), np.stack(Hs)
+
+
+def test_fov_disc_of_the_shipped_image(fundus):
+    cx, cy, r = estimate_fov_disc(fundus)
+    # The sample's view is a disc of diameter ~1390 px centred in the 1411 px square.
+    assert abs(cx - 705) < 8 and abs(cy - 705) < 8
+    assert 670 < r < 705
+    # A synthetic disc with a dark lesion inside: the hole is filled, the disc found exactly.
+    img = np.zeros((300, 400, 3), np.uint8)
+    cv2.circle(img, (220, 140), 100, (90, 120, 160), -1)
+    cv2.circle(img, (200, 150), 15, (0, 0, 0), -1)
+    cx, cy, r = estimate_fov_disc(img)
+    assert abs(cx - 220) <= 1.5 and abs(cy - 140) <= 1.5 and abs(r - 100) <= 3
+
+
+def _warp_diff(
+    moving: np.ndarray, fixed: np.ndarray, H: np.ndarray, *masks: np.ndarray
+) -> list[float]:
+    """Mean absolute difference between `fixed` and `moving` warped by H, on each mask."""
+    h, w = fixed.shape[:2]
+    warped = cv2.warpPerspective(moving, H, (w, h), flags=cv2.INTER_LINEAR)
+    diff = np.abs(warped.astype(np.float32) - fixed.astype(np.float32)).mean(axis=2)
+    return [float(diff[m].mean()) for m in masks]
+
+
+def test_ground_truth_is_exact(clean_video):
+    """Warping frame j into frame i with the truth reproduces frame i on their overlap."""
+    params, frames, Hs = clean_video
+    w, h = params.size
+    rel = relative_homographies(Hs)
+    for i, j in [(0, 3), (5, 11), (7, 6)]:
+        H_j_to_i = np.linalg.inv(rel[i]) @ rel[j]
+        valid = cv2.warpPerspective(np.full((h, w), 255, np.uint8), H_j_to_i, (w, h))
+        interior = cv2.erode(valid, np.ones((15, 15), np.uint8)) > 0
+        assert interior.mean() > 0.3  # frames this close overlap widely
+        grey = cv2.cvtColor(frames[i], cv2.COLOR_BGR2GRAY).astype(np.float32)
+        grad = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+        vessels = interior & (grad > np.percentile(grad[interior], 90))  # where errors show
+
+        overall, textured = _warp_diff(frames[j], frames[i], H_j_to_i, interior, vessels)
+        assert overall < 1.0 and textured < 1.0, (i, j, overall, textured)  # resampling only
+        # The check has teeth: a truth off by one pixel is clearly worse on the vessels.
+        shifted = np.array([[1, 0, 1.0], [0, 1, 0], [0, 0, 1]]) @ H_j_to_i
+        _, textured_wrong = _warp_diff(frames[j], frames[i], shifted, interior, vessels)
+        assert textured_wrong > 1.8 and textured_wrong > 3 * textured
+
+
+def test_trajectory_stays_inside_the_source_view(source):
+    params = SynthParams(n_frames=40, size=SIZE, seed=1, max_step_px=20.0, **CLEAN)
+    for frame, _ in render_frames(source, params):
+        grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+        assert (grey < 20).sum() == 0  # the source's black border never shows up
+    # The geometric check, for every corner of every frame of a longer, faster video.
+    cx, cy, r = estimate_fov_disc(source)
+    params = SynthParams(n_frames=200, size=SIZE, seed=2, max_step_px=30.0, rotation_deg=40)
+    Hs = plan_trajectory(source, params)
+    w, h = SIZE
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
+    mapped = corners @ Hs.transpose(0, 2, 1)
+    xy = mapped[..., :2] / mapped[..., 2:]
+    assert np.hypot(xy[..., 0] - cx, xy[..., 1] - cy).max() < r
+
+
+def test_motion_is_bounded_and_follows_params(source):
+    params = SynthParams(n_frames=50, size=SIZE, seed=5, max_step_px=10.0, rotation_deg=8.0)
+    Hs = plan_trajectory(source, params)
+    centre = np.array([(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2, 1.0])
+    c = Hs @ centre
+    c = c[:, :2] / c[:, 2:]
+    scale = np.sqrt(np.abs(np.linalg.det(Hs[:, :2, :2])))  # source px per frame px
+    steps = np.linalg.norm(np.diff(c, axis=0), axis=1) / scale[1:]
+    assert steps.mean() == pytest.approx(10.0, rel=0.1)
+    # Consecutive frames: every corner moves by at most a few times the mean step.
+    rel = relative_homographies(Hs)
+    corner_steps = [
+        corner_error(np.linalg.inv(rel[i]) @ rel[i + 1], np.eye(3), SIZE) for i in range(49)
+    ]
+    assert max(corner_steps) < 3 * params.max_step_px
+    angles = np.degrees(np.arctan2(Hs[:, 1, 0], Hs[:, 0, 0]))
+    assert np.ptp(angles) == pytest.approx(8.0, abs=0.5)
+    assert (1 / scale).min() > 0.85 and (1 / scale).max() < 1.15  # zoom within scale_range
+
+
+def test_same_seed_same_video_and_nuisances_keep_geometry(source):
+    params = SynthParams(n_frames=6, size=SIZE, seed=9, blur_prob=0.5)
+    a = list(render_frames(source, params))
+    b = list(render_frames(source, params))
+    for (fa, ha), (fb, hb) in zip(a, b, strict=True):
+        np.testing.assert_array_equal(fa, fb)
+        np.testing.assert_array_equal(ha, hb)
+    # Nuisances off: same trajectory (independent random streams), different pixels.
+    clean = list(render_frames(source, SynthParams(n_frames=6, size=SIZE, seed=9, **CLEAN)))
+    for (fa, ha), (fc, hc) in zip(a, clean, strict=True):
+        np.testing.assert_array_equal(ha, hc)
+        assert np.abs(fa.astype(int) - fc).mean() > 1.0
+    other = plan_trajectory(source, SynthParams(n_frames=6, size=SIZE, seed=10))
+    assert corner_error(other[-1], a[-1][1], SIZE) > 1.0
+
+
+def test_aperture_darkens_the_border_only(source):
+    params = SynthParams(n_frames=2, size=SIZE, seed=0, nuisances=False, aperture=True)
+    frame, _ = next(render_frames(source, params))
+    grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    assert grey[:3, :3].max() < 12 and grey[-3:, -3:].max() < 12  # dark corners
+    h, w = grey.shape
+    assert grey[h // 4 : 3 * h // 4, w // 4 : 3 * w // 4].min() > 20  # untouched centre
+
+
+def test_write_video_and_ground_truth_round_trip(tmp_path):
+    params = SynthParams(n_frames=8, size=(200, 120), seed=3)
+    out = tmp_path / "clip.mp4"
+    gt_path = write_synthetic_video(sample_image_path(), out, params)
+    assert gt_path == tmp_path / "clip.gt.json" == gt_path_for(out)
+    data = json.loads(gt_path.read_text())
+    assert data["size"] == [200, 120] and data["seed"] == 3 and data["fps"] == 25.0
+    assert data["params"]["n_frames"] == 8
+    gt = load_ground_truth(gt_path)
+    assert len(gt) == 8 and all(H.shape == (3, 3) for H in gt)
+    expected = plan_trajectory(cv2.imread(str(sample_image_path())), params)
+    np.testing.assert_allclose(np.stack(gt), expected, rtol=1e-12, atol=1e-12)
+    assert load_ground_truth(out)[3] == pytest.approx(gt[3])  # the video path works too
+    with open_frames(out) as frames:
+        assert (frames.info.n_frames, frames.info.width, frames.info.height) == (8, 200, 120)
+        assert sum(f.image is not None for f in frames) == 8
+
+
+def test_write_png_folder_and_avi(tmp_path):
+    params = SynthParams(n_frames=4, size=(96, 64), seed=0, **CLEAN)
+    gt = write_synthetic_video(sample_image_path(), tmp_path / "frames", params)
+    assert gt == tmp_path / "frames.gt.json"
+    names = sorted(p.name for p in (tmp_path / "frames").iterdir())
+    assert names == [f"frame_{i:04d}.png" for i in range(4)]
+    # PNG frames are lossless: they equal the rendered frames exactly.
+    rendered = [f for f, _ in render_frames(cv2.imread(str(sample_image_path())), params)]
+    with open_frames(tmp_path / "frames") as frames:
+        for frame, expected in zip(frames, rendered, strict=True):
+            np.testing.assert_array_equal(frame.image, expected)
+    write_synthetic_video(sample_image_path(), tmp_path / "clip.avi", params)
+    with open_frames(tmp_path / "clip.avi") as frames:
+        assert frames.info.n_frames == 4
+
+
+def test_errors(tmp_path):
+    params = SynthParams(n_frames=2, size=(64, 48))
+    with pytest.raises(InputError, match="not found"):
+        write_synthetic_video(tmp_path / "none.jpg", tmp_path / "v.mp4", params)
+    with pytest.raises(OutputError, match="output folder does not exist"):
+        write_synthetic_video(sample_image_path(), tmp_path / "missing" / "v.mp4", params)
+    with pytest.raises(OutputError, match="unsupported video format"):
+        write_synthetic_video(sample_image_path(), tmp_path / "v.xyz", params)
+    with pytest.raises(ConfigError, match="scale_range"):
+        SynthParams(scale_range=(1.2, 1.0))
+    with pytest.raises(ConfigError, match="n_frames"):
+        SynthParams(n_frames=0)
+    bad = tmp_path / "bad.gt.json"
+    bad.write_text(json.dumps({"frames": [{"index": 1, "H_frame_to_source": np.eye(3).tolist()}]}))
+    with pytest.raises(InputError, match="malformed"):
+        load_ground_truth(bad)
+    bad.write_text("{not json")
+    with pytest.raises(InputError, match="malformed"):
+        load_ground_truth(bad)
+    with pytest.raises(InputError, match="not found"):
+        load_ground_truth(tmp_path / "absent.gt.json")
+
+
+def test_corner_error_and_relative_homographies():
+    T = np.array([[1, 0, 3.0], [0, 1, 4.0], [0, 0, 1]])
+    assert corner_error(T, np.eye(3), (100, 50)) == pytest.approx(5.0)
+    G = [np.diag([2.0, 2.0, 1.0]), np.diag([2.0, 2.0, 1.0]) @ T]
+    rel = relative_homographies(G)
+    np.testing.assert_allclose(rel[0], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(rel[1], T, atol=1e-12)
