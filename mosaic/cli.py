@@ -10,7 +10,8 @@ import csv
 import dataclasses
 import json
 import logging
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any
@@ -27,6 +28,7 @@ from mosaic.features import DETECTORS, FeatureExtractor
 from mosaic.io import check_output_path, open_frames, read_image, write_image, write_json
 from mosaic.pipeline import MosaicBuilder, MosaicResult, register_pair
 from mosaic.synth import SynthParams, write_synthetic_video
+from mosaic.viz import VIEWER_MODES, RerunViewer, make_viewer
 
 app = typer.Typer(
     add_completion=False,
@@ -73,6 +75,18 @@ def _config(
     return with_overrides(config, **overrides) if overrides else config
 
 
+def _reread(video: Path, step: int, max_frames: int) -> Callable[[], Iterator[tuple[int, Any]]]:
+    """Re-open the input for rendering the refined mosaic (a second pass, with progress)."""
+
+    def frames() -> Iterator[tuple[int, Any]]:
+        with open_frames(video, step, max_frames) as source:
+            total = source.expected_frames
+            for frame in tqdm(source, total=total, unit="frame", desc="render", leave=False):
+                yield frame.index, frame.image
+
+    return frames
+
+
 def _segment_path(output: Path, index: int) -> Path:
     return output.with_name(f"{output.stem}_seg{index:03d}{output.suffix}")
 
@@ -114,6 +128,34 @@ def _print_summary(summary: dict[str, Any], output: Path, report_path: Path) -> 
     typer.echo(f"mosaic: {output}\nreport: {report_path}")
 
 
+def _viewer_args(
+    mode: str, target: str | None, spawn: bool, output: Path
+) -> tuple[str, str | None]:
+    """Resolve --rerun / --viewer / --rerun-target into a mode and its target, failing early."""
+    if mode not in VIEWER_MODES:
+        raise InputError(f"unknown --rerun mode {mode!r} (choices: {', '.join(VIEWER_MODES)})")
+    if spawn:
+        if mode not in ("off", "spawn"):
+            raise InputError(f"--viewer is short for --rerun spawn; it cannot go with --rerun {mode}")
+        mode = "spawn"
+    if target is not None and mode not in ("save", "connect"):
+        raise InputError(f"--rerun-target is only used with --rerun save or connect, not {mode}")
+    if mode == "save":
+        rrd = target or output.with_suffix(".rrd")
+        target = str(check_output_path(rrd, frozenset({".rrd"})))
+    return mode, target
+
+
+def _serve_until_interrupted(url: str | None) -> None:
+    """Keep the rerun server (and the recording it buffers) alive for late viewers."""
+    typer.echo(f"still serving the recording at {url} (Ctrl-C to stop)")
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+
+
 @app.command()
 def build(
     video: Annotated[Path, typer.Argument(help="Video file OpenCV reads, or a folder of frames.")],
@@ -131,23 +173,54 @@ def build(
     ] = None,
     max_frames: Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")] = None,
     step: Annotated[int | None, typer.Option(help="Process every K-th frame.")] = None,
+    strategy: Annotated[
+        str | None, typer.Option(help="keyframes (default) | chain (the paper's frame-to-frame).")
+    ] = None,
     on_failure: Annotated[
         str | None, typer.Option(help="stop | skip | restart (new mosaic segment).")
     ] = None,
+    rerun: Annotated[
+        str,
+        typer.Option(
+            help=f"Live rerun viewer: {' | '.join(VIEWER_MODES)} (serve prints a browser URL)."
+        ),
+    ] = "off",
+    rerun_target: Annotated[
+        str | None,
+        typer.Option(
+            help="save: the .rrd file (default: next to the output); "
+            "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
+        ),
+    ] = None,
+    viewer_flag: Annotated[bool, typer.Option("--viewer", help="Short for --rerun spawn.")] = False,
+    rerun_canvas_every: Annotated[
+        int, typer.Option(min=1, help="Send the mosaic canvas to the viewer every N frames.")
+    ] = 10,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Build a retina mosaic from a video, streaming frame by frame."""
     _setup_logging(verbose)
     with _user_errors():
         config = _config(
-            config_path, detector, max_frames=max_frames, step=step, on_failure=on_failure
+            config_path,
+            detector,
+            max_frames=max_frames,
+            step=step,
+            on_failure=on_failure,
+            strategy=strategy,
         )
         output = check_output_path(output)
         report_path = check_output_path(report or output.with_suffix(".json"))
-        builder = MosaicBuilder(config)
+        rerun, rerun_target = _viewer_args(rerun, rerun_target, viewer_flag, output)
         interrupted = False
         with open_frames(video, config.pipeline.step, config.pipeline.max_frames) as frames:
             info = frames.info
+            viewer = make_viewer(
+                rerun, rerun_target, config, info, canvas_every=rerun_canvas_every
+            )
+            if isinstance(viewer, RerunViewer) and viewer.url:
+                typer.echo(f"rerun viewer: {viewer.url}")
+            builder = MosaicBuilder(config, viewer=viewer)
             total = info.n_frames
             if total is not None:
                 total = -(-total // config.pipeline.step)
@@ -169,12 +242,17 @@ def build(
             except KeyboardInterrupt:
                 interrupted = True
                 typer.echo("interrupted: writing the partial mosaic and report", err=True)
-        result = builder.finish(interrupted=interrupted)
+        reread = _reread(video, config.pipeline.step, config.pipeline.max_frames)
+        result = builder.finish(interrupted=interrupted, reread=reread)
         extra = {"input": {**dataclasses.asdict(info), "path": str(info.path)}}
         _write_outputs(result, output, report_path, extra)
         _print_summary(result.report["summary"], output, report_path)
+        if rerun == "save":
+            typer.echo(f"recording: {rerun_target}")
     if interrupted:
         raise typer.Exit(EXIT_INTERRUPTED)
+    if rerun == "serve":
+        _serve_until_interrupted(getattr(viewer, "url", None))
 
 
 def _parse_size(size: str) -> tuple[int, int]:

@@ -78,11 +78,34 @@ class ComposeConfig:
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Frame streaming and what to do when a frame does not register."""
+    """Frame streaming, registration strategy and what to do when a frame does not register."""
 
+    strategy: str = "keyframes"  # keyframes (accurate over long videos) | chain (the paper's)
     on_failure: str = "skip"  # stop (paper's protocol) | skip | restart (new mosaic segment)
     step: int = 1  # process every step-th frame
     max_frames: int = 0  # stop after this many processed frames; 0: whole video
+
+
+@dataclass(frozen=True)
+class KeyframesConfig:
+    """Keyframe strategy: register to keyframes, relocalise, close loops, refine globally."""
+
+    min_overlap: float = 0.6  # promote a new keyframe when overlap with the active one drops below
+    max_keyframes: int = 200  # keyframes whose features stay in memory (oldest dropped first)
+    relocalise_candidates: int = 4  # other keyframes tried before a frame is declared failed
+    loop_closure: bool = True  # match new keyframes against older overlapping ones too
+    loop_min_overlap: float = 0.3  # predicted overlap that makes an old keyframe a loop candidate
+    refine: bool = True  # pose-graph refinement of the keyframes at the end of the video
+    rerender: bool = True  # re-read the video to render the mosaic from refined poses
+
+
+@dataclass(frozen=True)
+class GatingConfig:
+    """Frames not worth registering: skipped and counted before detection."""
+
+    enabled: bool = True
+    min_sharpness_ratio: float = 0.3  # Laplacian variance below this x the recent median: blurred
+    min_fov_fraction: float = 0.15  # fraction of the frame inside the field of view
 
 
 @dataclass(frozen=True)
@@ -95,6 +118,8 @@ class Config:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     compose: ComposeConfig = field(default_factory=ComposeConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)
+    gating: GatingConfig = field(default_factory=GatingConfig)
 
 
 CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
@@ -108,6 +133,7 @@ CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
     ),
     ("compose", "blend"): ("feather", "average", "last"),
     ("pipeline", "on_failure"): ("stop", "skip", "restart"),
+    ("pipeline", "strategy"): ("keyframes", "chain"),
 }
 POSITIVE = {
     ("preprocess", "clahe_tile_grid"),
@@ -119,6 +145,7 @@ POSITIVE = {
     ("registration", "max_iters"),
     ("compose", "max_canvas_px"),
     ("pipeline", "step"),
+    ("keyframes", "max_keyframes"),
 }
 
 

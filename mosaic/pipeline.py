@@ -1,5 +1,6 @@
-"""The mosaicking pipeline: each frame goes read → preprocess → detect → describe → match →
-estimate → check → compose, and is accounted for in the report.
+"""The mosaicking pipeline: each frame goes read → preprocess → gate → detect → describe →
+track (match → estimate → check, against the previous frame or the keyframes) → compose, and is
+accounted for in the report; at the end the keyframe poses are refined and the mosaic rendered.
 
 `MosaicBuilder.process` takes one decoded frame at a time (frames are streamed, never stored);
 `MosaicBuilder.finish` renders the mosaic segment(s) and the report. Reading files, progress bars
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -21,8 +22,9 @@ from mosaic.config import Config, config_to_dict
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features
 from mosaic.matching import Matches, match_descriptors
-from mosaic.preprocess import Prepared, prepare
+from mosaic.preprocess import FrameGate, Prepared, prepare
 from mosaic.registration import Registration, estimate_homography
+from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
 
 log = logging.getLogger(__name__)
@@ -62,6 +64,7 @@ class FrameEvent:
     matches: Matches | None
     registration: Registration | None
     canvas: Canvas | None
+    reference: Features | None = None  # what the frame was matched against (matches.idx_a)
 
 
 @dataclass(frozen=True)
@@ -96,12 +99,27 @@ class _Timer:
     def run(self, stage: str, fn: Callable[..., Any], *args: Any) -> Any:
         start = time.perf_counter()
         out = fn(*args)
-        self._record.stage_ms[stage] = (time.perf_counter() - start) * 1e3
+        elapsed = (time.perf_counter() - start) * 1e3
+        self._record.stage_ms[stage] = self._record.stage_ms.get(stage, 0.0) + elapsed
         return out
 
 
+@dataclass
+class _Segment:
+    """One mosaic under construction: its canvas, its tracker and the frames placed on it."""
+
+    index: int
+    canvas: Canvas
+    tracker: Tracker
+    records: list[FrameRecord] = field(default_factory=list)
+    refined_poses: dict[int, np.ndarray] | None = None  # H_frame_to_ref after refinement
+
+
+Reread = Callable[[], Iterable[tuple[int, np.ndarray | None]]]
+
+
 class MosaicBuilder:
-    """Registers frames one by one (frame-to-frame chaining) and accumulates the mosaic."""
+    """Registers frames one by one with the configured strategy and accumulates the mosaic."""
 
     def __init__(
         self,
@@ -114,81 +132,96 @@ class MosaicBuilder:
         self.viewer = viewer if viewer is not None else NullViewer()
         self.records: list[FrameRecord] = []
         self.stopped = False  # set by on_failure = "stop" at the first failed frame
-        self._segments: list[SegmentMosaic] = []
-        self._canvas: Canvas | None = None
-        self._prev: Features | None = None
-        self._H_prev_to_ref = np.eye(3)
+        self._segments: list[_Segment] = []
+        self._gate = FrameGate(config.gating)
         self._started = time.perf_counter()
+
+    @property
+    def _segment(self) -> _Segment | None:
+        return self._segments[-1] if self._segments else None
+
+    def _new_segment(self) -> _Segment:
+        segment = _Segment(
+            len(self._segments), Canvas(self.config.compose), make_tracker(self.config)
+        )
+        self._segments.append(segment)
+        return segment
 
     def process(
         self, index: int, image: np.ndarray | None, error: str | None = None
     ) -> FrameRecord:
-        """Register and compose one frame; a frame that could not be decoded is skipped."""
+        """Register and compose one frame; undecodable or unusable frames are skipped."""
         record = FrameRecord(index=index)
         self.records.append(record)
         if image is None:
-            record.reason = error or "frame could not be decoded"
-            log.warning("frame %d skipped: %s", index, record.reason)
-            self.viewer.frame(FrameEvent(record, None, None, None, None, None, None))
-            return record
+            return self._skip(record, error or "frame could not be decoded")
         timer = _Timer(record)
         prepared = timer.run("preprocess", prepare, image, self.config.preprocess)
+        gate_reason = self._gate(prepared)
+        if gate_reason is not None:
+            return self._skip(record, gate_reason, image, prepared)
         detected = timer.run("detect", self.extractor.detect, prepared)
         features = timer.run("describe", self.extractor.describe, prepared, detected)
         record.n_keypoints = len(features)
 
-        matches = registration = None
-        if self._prev is None:
-            self._start_segment(record, image, prepared, features, timer, reason=None)
-        else:
-            matches = timer.run(
-                "match",
-                match_descriptors,
-                self._prev.descriptors,
-                features.descriptors,
-                self.config.matching,
-            )
-            registration = timer.run(
-                "estimate",
-                estimate_homography,
-                features.xy[matches.idx_b],
-                self._prev.xy[matches.idx_a],
-                self.config.registration,
-            )
-            record.n_matches, record.n_inliers = registration.n_matches, registration.n_inliers
-            record.reproj_error_px = registration.reproj_error_px
-            reason = registration.reason
-            if registration.ok:
-                H_frame_to_ref = self._H_prev_to_ref @ registration.H_cur_to_prev
-                reason = self._compose(record, image, prepared, H_frame_to_ref, timer)
-            if reason is not None:
-                self._fail(record, image, prepared, features, timer, reason)
-            else:
-                self._advance(record, features)
+        segment = self._segment or self._new_segment()
+        track = segment.tracker.track(index, features, prepared.gray.shape, timer)
+        if track.registration is not None:
+            record.n_matches = track.registration.n_matches
+            record.n_inliers = track.registration.n_inliers
+            record.reproj_error_px = track.registration.reproj_error_px
+        reason = track.reason
+        if reason is None:
+            reason = self._place(segment, record, image, prepared, features, track, timer)
+        if reason is not None:
+            self._fail(record, image, prepared, features, timer, reason)
         self.viewer.frame(
-            FrameEvent(record, image, prepared, features, matches, registration, self._canvas)
+            FrameEvent(
+                record,
+                image,
+                prepared,
+                features,
+                track.matches,
+                track.registration,
+                self._segment.canvas if self._segment else None,
+                track.reference,
+            )
         )
         return record
 
-    def _compose(
+    def _skip(
         self,
+        record: FrameRecord,
+        reason: str,
+        image: np.ndarray | None = None,
+        prepared: Prepared | None = None,
+    ) -> FrameRecord:
+        record.reason = reason
+        log.warning("frame %d skipped: %s", record.index, reason)
+        self.viewer.frame(FrameEvent(record, image, prepared, None, None, None, None, None))
+        return record
+
+    def _place(
+        self,
+        segment: _Segment,
         record: FrameRecord,
         image: np.ndarray,
         prepared: Prepared,
-        H_frame_to_ref: np.ndarray,
+        features: Features,
+        track: Track,
         timer: _Timer,
     ) -> str | None:
-        assert self._canvas is not None
+        """Put the frame on the canvas and let the tracker take it; or say why not."""
+        assert track.H_frame_to_ref is not None
         try:
-            timer.run("compose", self._canvas.add, image, H_frame_to_ref, prepared.mask)
+            timer.run("compose", segment.canvas.add, image, track.H_frame_to_ref, prepared.mask)
         except CanvasLimitError as exc:
             return str(exc)
-        record.status, record.H_frame_to_ref = REGISTERED, H_frame_to_ref
-        record.segment = len(self._segments)
+        segment.tracker.commit(record.index, features, prepared.gray.shape, track)
+        record.status, record.H_frame_to_ref = REGISTERED, track.H_frame_to_ref
+        record.segment = segment.index
+        segment.records.append(record)
         return None
-
-    def _advance(self, record: FrameRecord, features: Features) -> None:
-        self._prev, self._H_prev_to_ref = features, record.H_frame_to_ref
 
     def _fail(
         self,
@@ -205,42 +238,59 @@ class MosaicBuilder:
         if policy == "stop":
             self.stopped = True
         elif policy == "restart":
-            self._close_segment()
-            self._start_segment(record, image, prepared, features, timer, reason)
+            segment = self._new_segment()
+            first = segment.tracker.track(record.index, features, prepared.gray.shape, timer)
+            if self._place(segment, record, image, prepared, features, first, timer) is None:
+                record.status = FAILED
+                record.reason = f"{reason}; started segment {segment.index}"
 
-    def _start_segment(
-        self,
-        record: FrameRecord,
-        image: np.ndarray,
-        prepared: Prepared,
-        features: Features,
-        timer: _Timer,
-        reason: str | None,
-    ) -> None:
-        """Make this frame the reference of a new mosaic segment."""
-        self._canvas = Canvas(self.config.compose)
-        self._compose(record, image, prepared, np.eye(3), timer)
-        if reason is not None:  # a restart: the frame failed against the previous segment
-            record.status, record.reason = FAILED, f"{reason}; started segment {record.segment}"
-        self._advance(record, features)
-
-    def _close_segment(self) -> None:
-        if self._canvas is None or self._canvas.n_frames == 0:
+    def _refine(self, segment: _Segment) -> None:
+        """Global refinement of the segment's poses (keyframe strategy)."""
+        if segment.tracker.refine() is None:
             return
-        canvas = self._canvas
-        self._segments.append(
-            SegmentMosaic(
-                len(self._segments), canvas.render(), canvas.H_ref_to_canvas, canvas.n_frames
-            )
-        )
-        self._canvas = None
+        poses = {r.index: segment.tracker.pose(r.index) for r in segment.records}
+        segment.refined_poses = {k: H for k, H in poses.items() if H is not None}
 
-    def finish(self, interrupted: bool = False) -> MosaicResult:
-        """Render the open segment and build the report (also after an interruption)."""
-        self._close_segment()
-        report = build_report(self, interrupted)
+    def _rerender(self, reread: Reread) -> None:
+        """Render refined segments again from the video, one more pass over its frames."""
+        todo = {s.index: s for s in self._segments if s.refined_poses and s.records}
+        owner = {r.index: s.index for s in todo.values() for r in s.records}
+        canvases = {k: Canvas(self.config.compose) for k in todo}
+        for index, image in reread():
+            if index not in owner or image is None:
+                continue
+            segment = todo[owner[index]]
+            H = segment.refined_poses[index]  # type: ignore[index]
+            mask = prepare(image, self.config.preprocess).mask
+            canvases[segment.index].add(image, H, mask)
+        for k, canvas in canvases.items():
+            segment = todo[k]
+            if canvas.n_frames != len(segment.records):
+                log.warning("segment %d not re-rendered: the input changed on re-reading", k)
+                continue
+            segment.canvas = canvas
+            for record in segment.records:
+                record.H_frame_to_ref = segment.refined_poses[record.index]  # type: ignore[index]
+
+    def finish(self, interrupted: bool = False, reread: Reread | None = None) -> MosaicResult:
+        """Refine, render the segment(s) and build the report (also after an interruption).
+
+        `reread` re-opens the input so that a refined mosaic is rendered from the frames again;
+        without it the live canvas and its poses are kept.
+        """
+        if not interrupted:
+            for segment in self._segments:
+                self._refine(segment)
+            if reread is not None and self.config.keyframes.rerender:
+                self._rerender(reread)
+        mosaics = [
+            SegmentMosaic(s.index, s.canvas.render(), s.canvas.H_ref_to_canvas, s.canvas.n_frames)
+            for s in self._segments
+            if s.canvas.n_frames
+        ]
+        report = build_report(self, mosaics, interrupted)
         self.viewer.finish(report)
-        return MosaicResult(list(self._segments), report)
+        return MosaicResult(mosaics, report)
 
 
 def _leading_run(statuses: list[str]) -> int:
@@ -264,10 +314,10 @@ def _longest_run(statuses: list[str]) -> int:
     return best
 
 
-def _frame_entry(record: FrameRecord, segments: list[SegmentMosaic]) -> dict[str, Any]:
+def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict[str, Any]:
     H_to_canvas = None
-    if record.H_frame_to_ref is not None and record.segment is not None:
-        H = segments[record.segment].H_ref_to_mosaic @ record.H_frame_to_ref
+    if record.H_frame_to_ref is not None and record.segment in mosaics:
+        H = mosaics[record.segment].H_ref_to_mosaic @ record.H_frame_to_ref
         H_to_canvas = (H / H[2, 2]).tolist()
     entry: dict[str, Any] = {
         "index": record.index,
@@ -287,9 +337,27 @@ def _frame_entry(record: FrameRecord, segments: list[SegmentMosaic]) -> dict[str
     return entry
 
 
-def build_report(builder: MosaicBuilder, interrupted: bool) -> dict[str, Any]:
+def _tracking_summary(builder: MosaicBuilder) -> dict[str, Any]:
+    """Keyframes, relocalisations, loop closures and refinement residuals over all segments."""
+    per_segment = [s.tracker.stats() for s in builder._segments]
+    totals: dict[str, Any] = {}
+    for key in ("keyframes", "relocalised", "loop_closures", "loop_attempts"):
+        values = [stats[key] for stats in per_segment if key in stats]
+        if values:
+            totals[key] = int(sum(values))
+    refinements = [stats.get("refinement") for stats in per_segment]
+    if any(refinements):
+        totals["refinement"] = refinements
+    totals["rerendered"] = any(s.refined_poses for s in builder._segments)
+    return totals
+
+
+def build_report(
+    builder: MosaicBuilder, mosaics: list[SegmentMosaic], interrupted: bool
+) -> dict[str, Any]:
     """The JSON-ready report: summary, configuration and one entry per frame."""
     records = builder.records
+    by_index = {m.index: m for m in mosaics}
     statuses = [r.status for r in records]
     attempts = [r for r in records if r.status != SKIPPED and r.n_matches > 0]
     stage_ms = {
@@ -305,7 +373,7 @@ def build_report(builder: MosaicBuilder, interrupted: bool) -> dict[str, Any]:
         "skipped": statuses.count(SKIPPED),
         "frames_until_failure": _leading_run(statuses),
         "longest_registered_run": _longest_run(statuses),
-        "segments": len(builder._segments),
+        "segments": len(mosaics),
         "mean_matches": round(float(np.mean([r.n_matches for r in attempts])), 2)
         if attempts
         else 0.0,
@@ -316,7 +384,8 @@ def build_report(builder: MosaicBuilder, interrupted: bool) -> dict[str, Any]:
         "fps": round(len(records) / elapsed, 2) if elapsed > 0 else 0.0,
         "mean_stage_ms": stage_ms,
         "detector": builder.extractor.detector.name,
-        "strategy": "chain",
+        "strategy": builder.config.pipeline.strategy,
+        "tracking": _tracking_summary(builder),
         "on_failure": builder.config.pipeline.on_failure,
         "stopped_at_failure": builder.stopped,
         "interrupted": interrupted,
@@ -330,10 +399,10 @@ def build_report(builder: MosaicBuilder, interrupted: bool) -> dict[str, Any]:
                 "width": int(s.image.shape[1]),
                 "height": int(s.image.shape[0]),
             }
-            for s in builder._segments
+            for s in mosaics
         ],
         "config": config_to_dict(builder.config),
-        "frames": [_frame_entry(r, builder._segments) for r in records],
+        "frames": [_frame_entry(r, by_index) for r in records],
     }
 
 

@@ -7,13 +7,14 @@ dark border around the circular/elliptical view of fundus and slit-lamp frames y
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
 import numpy as np
 
-from mosaic.config import PreprocessConfig
+from mosaic.config import GatingConfig, PreprocessConfig
 
 log = logging.getLogger(__name__)
 
@@ -82,3 +83,45 @@ def prepare(image: np.ndarray, config: PreprocessConfig) -> Prepared:
             config.bilateral_sigma_space,
         )
     return Prepared(gray=gray, mask=mask)
+
+
+def sharpness(prepared: Prepared) -> float:
+    """Variance of the Laplacian inside the field of view (at half resolution): blur lowers it."""
+    small = cv2.pyrDown(prepared.gray)
+    mask = cv2.resize(prepared.mask, (small.shape[1], small.shape[0]), cv2.INTER_NEAREST) > 0
+    if not mask.any():
+        return 0.0
+    return float(cv2.Laplacian(small, cv2.CV_32F)[mask].var())
+
+
+class FrameGate:
+    """Skips frames not worth registering: too blurred (relative to recent frames) or too dark.
+
+    Blur is judged against the median sharpness of recent accepted frames, not an absolute
+    threshold, so the same setting works across cameras, resolutions and contrast.
+    """
+
+    HISTORY = 15
+    MIN_HISTORY = 5
+
+    def __init__(self, config: GatingConfig):
+        self._config = config
+        self._recent: deque[float] = deque(maxlen=self.HISTORY)
+
+    def __call__(self, prepared: Prepared) -> str | None:
+        """Why the frame should be skipped, or None to process it."""
+        if not self._config.enabled:
+            return None
+        fov = float(np.count_nonzero(prepared.mask)) / prepared.mask.size
+        if fov < self._config.min_fov_fraction:
+            return f"too little field of view ({fov:.0%} < {self._config.min_fov_fraction:.0%})"
+        value = sharpness(prepared)
+        if len(self._recent) >= self.MIN_HISTORY:
+            median = float(np.median(self._recent))
+            if value < self._config.min_sharpness_ratio * median:
+                return (
+                    f"too blurred (sharpness {value:.0f} < {self._config.min_sharpness_ratio}"
+                    f" x recent median {median:.0f})"
+                )
+        self._recent.append(value)
+        return None

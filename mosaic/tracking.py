@@ -1,0 +1,365 @@
+"""Where does the current frame go? Registration strategies that place frames on the mosaic.
+
+- `ChainTracker`: the paper's frame-to-frame chaining, `H_frame_to_ref = H_prev_to_ref @
+  H_cur_to_prev`; errors accumulate with every step.
+- `KeyframeTracker`: each frame registers to the active keyframe; a frame whose overlap with it
+  drops below a threshold becomes the next keyframe. A frame that fails is relocalised against
+  recent and nearby keyframes; new keyframes are matched against older overlapping ones (loop
+  closure); at the end a pose graph over keyframes is refined. Keyframes keep their features
+  (bounded count), never their pixels.
+
+A tracker proposes a placement (`track`); the pipeline `commit`s it once the frame is on the
+canvas, so a frame the canvas refuses leaves the tracker unchanged.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from mosaic.config import Config
+from mosaic.features import Features
+from mosaic.matching import Matches, match_descriptors
+from mosaic.posegraph import Constraint, Refinement, refine_poses
+from mosaic.registration import Registration, estimate_homography
+
+log = logging.getLogger(__name__)
+
+Timed = Callable[..., Any]  # timer.run(stage, fn, *args)
+
+
+@dataclass(frozen=True)
+class Track:
+    """A proposed placement of one frame (or why there is none)."""
+
+    H_frame_to_ref: np.ndarray | None
+    registration: Registration | None = None
+    matches: Matches | None = None
+    reference: Features | None = None  # the features the frame was matched against
+    keyframe: int | None = None  # keyframe id (keyframe strategy)
+    relocalised: bool = False
+    attempts: int = 0
+
+    @property
+    def reason(self) -> str | None:
+        if self.H_frame_to_ref is not None:
+            return None
+        if self.registration is not None and self.registration.reason:
+            return self.registration.reason
+        return "no reference to register against"
+
+
+class Tracker(Protocol):
+    """What the pipeline needs of a registration strategy."""
+
+    name: str
+
+    def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
+        """Propose where the frame goes (the first frame of a segment: identity)."""
+        ...
+
+    def commit(self, index: int, features: Features, shape: tuple[int, int], track: Track) -> None:
+        """The frame is on the canvas: update the tracker's state."""
+        ...
+
+    def refine(self) -> Refinement | None:
+        """Global refinement at the end of a segment (None when the strategy has none)."""
+        ...
+
+    def pose(self, index: int) -> np.ndarray | None:
+        """Current best `H_frame_to_ref` of a committed frame."""
+        ...
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for the report."""
+        ...
+
+
+def _register(
+    reference: Features, features: Features, config: Config, timer: Any
+) -> tuple[Matches, Registration]:
+    matches = timer.run(
+        "match", match_descriptors, reference.descriptors, features.descriptors, config.matching
+    )
+    registration = timer.run(
+        "estimate",
+        estimate_homography,
+        features.xy[matches.idx_b],
+        reference.xy[matches.idx_a],
+        config.registration,
+    )
+    return matches, registration
+
+
+class ChainTracker:
+    """The paper's frame-to-frame chaining."""
+
+    name = "chain"
+
+    def __init__(self, config: Config):
+        self._config = config
+        self._prev: Features | None = None
+        self._H_prev_to_ref = np.eye(3)
+        self._poses: dict[int, np.ndarray] = {}
+
+    def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
+        if self._prev is None:
+            return Track(np.eye(3))
+        matches, registration = _register(self._prev, features, self._config, timer)
+        H = self._H_prev_to_ref @ registration.H_cur_to_prev if registration.ok else None
+        return Track(H, registration, matches, self._prev, attempts=1)
+
+    def commit(self, index: int, features: Features, shape: tuple[int, int], track: Track) -> None:
+        assert track.H_frame_to_ref is not None
+        self._prev, self._H_prev_to_ref = features, track.H_frame_to_ref
+        self._poses[index] = track.H_frame_to_ref
+
+    def refine(self) -> Refinement | None:
+        return None
+
+    def pose(self, index: int) -> np.ndarray | None:
+        return self._poses.get(index)
+
+    def stats(self) -> dict[str, Any]:
+        return {}
+
+
+def corners(shape: tuple[int, int]) -> np.ndarray:
+    """The four corners (x, y) of an image of `shape` (h, w)."""
+    h, w = shape
+    return np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64)
+
+
+def project(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Apply a homography to (N, 2) points."""
+    p = np.hstack([xy, np.ones((len(xy), 1))]) @ H.T
+    return p[:, :2] / p[:, 2:]
+
+
+def overlap_fraction(poly_a: np.ndarray, poly_b: np.ndarray) -> float:
+    """Area of the intersection of two convex quadrilaterals over the area of `poly_a`."""
+    area_a = cv2.contourArea(poly_a.astype(np.float32))
+    if area_a <= 0 or not np.isfinite(poly_a).all() or not np.isfinite(poly_b).all():
+        return 0.0
+    inter, _ = cv2.intersectConvexConvex(poly_a.astype(np.float32), poly_b.astype(np.float32))
+    return float(inter / area_a)
+
+
+@dataclass
+class Keyframe:
+    """A frame kept as a registration anchor: its features and its pose, not its pixels."""
+
+    id: int
+    frame_index: int
+    features: Features | None  # None once dropped from memory (pose kept for refinement)
+    shape: tuple[int, int]
+    H_to_ref: np.ndarray
+
+    def footprint(self) -> np.ndarray:
+        return project(self.H_to_ref, corners(self.shape))
+
+
+@dataclass
+class _Placement:
+    keyframe: int
+    H_frame_to_kf: np.ndarray
+
+
+@dataclass
+class _Counters:
+    keyframes: int = 0
+    relocalised: int = 0
+    loop_closures: int = 0
+    loop_attempts: int = 0
+    refinement: dict[str, float] = field(default_factory=dict)
+
+
+class KeyframeTracker:
+    """Keyframes, relocalisation, loop closure and pose-graph refinement."""
+
+    name = "keyframes"
+    MAX_CONSTRAINT_POINTS = 40  # inlier pairs kept per keyframe pair for the pose graph
+    RECENT_KEYFRAMES = 2  # keyframes this close in time are neighbours, not loop closures
+    LOOP_CANDIDATES = 3  # older keyframes tried per new keyframe
+
+    def __init__(self, config: Config):
+        self._config = config
+        self._kcfg = config.keyframes
+        self._keyframes: OrderedDict[int, Keyframe] = OrderedDict()
+        self._active: int | None = None
+        self._placements: dict[int, _Placement] = {}
+        self._constraints: list[Constraint] = []
+        self._last_pose: np.ndarray | None = None
+        self._last_shape: tuple[int, int] | None = None
+        self._counters = _Counters()
+        self._rng = np.random.default_rng(0)
+
+    # -- proposing a placement -------------------------------------------------------------
+    def _candidates(self, shape: tuple[int, int]) -> list[Keyframe]:
+        """The active keyframe first, then the others most likely to overlap the frame."""
+        alive = [kf for kf in self._keyframes.values() if kf.features is not None]
+        if self._last_pose is None:
+            return alive[-1:]
+        predicted = project(self._last_pose, corners(shape))
+        others = [kf for kf in alive if kf.id != self._active]
+        ranked = sorted(
+            others,
+            key=lambda kf: (overlap_fraction(predicted, kf.footprint()), kf.id),
+            reverse=True,
+        )
+        active = [self._keyframes[self._active]] if self._active in self._keyframes else []
+        active = [kf for kf in active if kf.features is not None]
+        return active + ranked[: self._kcfg.relocalise_candidates]
+
+    def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
+        if not self._keyframes:
+            return Track(np.eye(3))
+        first: Track | None = None
+        for attempt, kf in enumerate(self._candidates(shape), start=1):
+            assert kf.features is not None
+            matches, registration = _register(kf.features, features, self._config, timer)
+            if registration.ok:
+                H = kf.H_to_ref @ registration.H_cur_to_prev
+                return Track(
+                    H, registration, matches, kf.features, kf.id, kf.id != self._active, attempt
+                )
+            if first is None:
+                first = Track(None, registration, matches, kf.features, kf.id, attempts=attempt)
+        assert first is not None
+        return Track(
+            None,
+            first.registration,
+            first.matches,
+            first.reference,
+            first.keyframe,
+            attempts=len(self._candidates(shape)),
+        )
+
+    # -- committing ------------------------------------------------------------------------
+    def commit(self, index: int, features: Features, shape: tuple[int, int], track: Track) -> None:
+        assert track.H_frame_to_ref is not None
+        self._last_pose, self._last_shape = track.H_frame_to_ref, shape
+        if track.keyframe is None:  # first frame of the segment
+            self._promote(index, features, shape, track.H_frame_to_ref)
+            return
+        kf = self._keyframes[track.keyframe]
+        if track.relocalised:
+            self._counters.relocalised += 1
+            log.info("frame %d relocalised on keyframe %d", index, kf.id)
+        self._active = kf.id
+        H_frame_to_kf = np.linalg.inv(kf.H_to_ref) @ track.H_frame_to_ref
+        overlap = overlap_fraction(project(H_frame_to_kf, corners(shape)), corners(kf.shape))
+        if overlap >= self._kcfg.min_overlap:
+            self._placements[index] = _Placement(kf.id, H_frame_to_kf)
+            return
+        new = self._promote(index, features, shape, track.H_frame_to_ref)
+        self._add_constraint(new.id, kf.id, track)
+        if self._kcfg.loop_closure:
+            self._close_loops(new, track.keyframe)
+
+    def _promote(
+        self, index: int, features: Features, shape: tuple[int, int], H_to_ref: np.ndarray
+    ) -> Keyframe:
+        kf = Keyframe(
+            len(self._keyframes) and max(self._keyframes) + 1, index, features, shape, H_to_ref
+        )
+        self._keyframes[kf.id] = kf
+        self._active = kf.id
+        self._placements[index] = _Placement(kf.id, np.eye(3))
+        self._counters.keyframes += 1
+        alive = [k for k in self._keyframes.values() if k.features is not None]
+        if len(alive) > self._kcfg.max_keyframes:
+            alive[0].features = None  # forget the oldest keyframe's features, keep its pose
+        return kf
+
+    def _add_constraint(self, a: int, b: int, track: Track) -> None:
+        """Inlier pairs of a registration between keyframe a (the frame) and b (reference)."""
+        assert track.registration is not None and track.matches is not None
+        assert track.reference is not None
+        inl = track.registration.inliers
+        frame_xy = self._keyframes[a].features.xy[track.matches.idx_b[inl]]  # type: ignore[union-attr]
+        ref_xy = track.reference.xy[track.matches.idx_a[inl]]
+        if len(frame_xy) > self.MAX_CONSTRAINT_POINTS:
+            keep = self._rng.choice(len(frame_xy), self.MAX_CONSTRAINT_POINTS, replace=False)
+            frame_xy, ref_xy = frame_xy[keep], ref_xy[keep]
+        self._constraints.append(
+            Constraint(a, b, frame_xy.astype(np.float64), ref_xy.astype(np.float64))
+        )
+
+    def _close_loops(self, new: Keyframe, registered_to: int) -> None:
+        """Match a new keyframe against older keyframes its footprint overlaps."""
+        recent = set(list(self._keyframes)[-(self.RECENT_KEYFRAMES + 1) :]) | {registered_to}
+        footprint = new.footprint()
+        scored = [
+            (overlap_fraction(footprint, kf.footprint()), kf)
+            for kf in self._keyframes.values()
+            if kf.id not in recent and kf.features is not None
+        ]
+        scored = [s for s in scored if s[0] >= self._kcfg.loop_min_overlap]
+        scored.sort(key=lambda s: s[0], reverse=True)
+        assert new.features is not None
+        for _, old in scored[: self.LOOP_CANDIDATES]:
+            assert old.features is not None
+            self._counters.loop_attempts += 1
+            matches, registration = _register(old.features, new.features, self._config, _NoTimer)
+            if registration.ok:
+                track = Track(None, registration, matches, old.features, old.id)
+                self._add_constraint(new.id, old.id, track)
+                self._counters.loop_closures += 1
+                log.info("loop closure: keyframe %d <-> %d", new.id, old.id)
+
+    # -- refinement ------------------------------------------------------------------------
+    def refine(self) -> Refinement | None:
+        if not self._kcfg.refine or len(self._keyframes) < 2:
+            return None
+        poses = {k: kf.H_to_ref for k, kf in self._keyframes.items()}
+        result = refine_poses(poses, self._constraints, fixed=min(self._keyframes))
+        for k, H in result.poses.items():
+            self._keyframes[k].H_to_ref = H
+        self._counters.refinement = {
+            "rms_before_px": round(result.rms_before_px, 3),
+            "rms_after_px": round(result.rms_after_px, 3),
+            "constraints": result.n_constraints,
+        }
+        return result
+
+    def pose(self, index: int) -> np.ndarray | None:
+        placement = self._placements.get(index)
+        if placement is None:
+            return None
+        return self._keyframes[placement.keyframe].H_to_ref @ placement.H_frame_to_kf
+
+    def stats(self) -> dict[str, Any]:
+        c = self._counters
+        return {
+            "keyframes": c.keyframes,
+            "relocalised": c.relocalised,
+            "loop_closures": c.loop_closures,
+            "loop_attempts": c.loop_attempts,
+            "refinement": c.refinement or None,
+        }
+
+
+class _NoTimer:
+    """Loop closures run outside a frame's stage timings."""
+
+    @staticmethod
+    def run(stage: str, fn: Callable[..., Any], *args: Any) -> Any:
+        return fn(*args)
+
+
+TRACKERS: dict[str, Callable[[Config], Tracker]] = {
+    "chain": ChainTracker,
+    "keyframes": KeyframeTracker,
+}
+
+
+def make_tracker(config: Config) -> Tracker:
+    """The registration strategy named in `[pipeline] strategy`."""
+    return TRACKERS[config.pipeline.strategy](config)
