@@ -2,8 +2,10 @@
 
 Unknowns are the homographies `H_kf_to_ref` of all keyframes but the first (the reference,
 fixed to identity). Each constraint is a pair of keyframes with matched inlier points; its
-residual is the distance, in reference-frame pixels, between the two keyframes' images of the
-same retinal point. A soft-L1 loss keeps a bad loop closure from bending the whole mosaic.
+residual is the transfer error of those points from one keyframe into the other. A soft-L1
+loss limits the pull of bad points; a loop closure that still disagrees with the solution by
+more than `max_loop_rms_px` is dropped and the graph solved again, so one wrong closure cannot
+bend the whole mosaic.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ class Constraint:
     b: int
     xy_a: np.ndarray  # (K, 2) float
     xy_b: np.ndarray  # (K, 2) float
+    loop: bool = False  # a loop closure (may be dropped), not a tracking step
 
 
 @dataclass(frozen=True)
@@ -36,6 +39,7 @@ class Refinement:
     rms_before_px: float
     rms_after_px: float
     n_constraints: int
+    dropped_loops: int = 0
 
 
 def _to_params(H: np.ndarray) -> np.ndarray:
@@ -53,22 +57,25 @@ def _project(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def _residuals(poses: dict[int, np.ndarray], constraints: list[Constraint]) -> np.ndarray:
+    """Transfer errors in keyframe b's own pixels: a point of a, mapped a → ref → b, against
+    its match in b. Measured in image pixels rather than reference pixels, the residual gives
+    the solver no reward for shrinking the mosaic away from the fixed keyframe."""
     return np.concatenate(
-        [(_project(poses[c.a], c.xy_a) - _project(poses[c.b], c.xy_b)).ravel() for c in constraints]
+        [
+            (_project(np.linalg.solve(poses[c.b], poses[c.a]), c.xy_a) - c.xy_b).ravel()
+            for c in constraints
+        ]
     )
 
 
-def refine_poses(
+def _solve(
     poses: dict[int, np.ndarray],
     constraints: list[Constraint],
     fixed: int,
-    loss_scale_px: float = 2.0,
-) -> Refinement:
-    """Least-squares poses consistent with all constraints; `fixed` keeps its pose."""
-    constraints = [c for c in constraints if c.a in poses and c.b in poses and len(c.xy_a)]
+    loss_scale_px: float,
+) -> tuple[dict[int, np.ndarray], np.ndarray, np.ndarray]:
+    """One robust least-squares solve: refined poses, residuals before and after."""
     free = [k for k in sorted(poses) if k != fixed]
-    if not constraints or not free:
-        return Refinement(dict(poses), 0.0, 0.0, len(constraints))
     column = {k: 8 * i for i, k in enumerate(free)}
 
     def unpack(x: np.ndarray) -> dict[int, np.ndarray]:
@@ -101,14 +108,39 @@ def refine_poses(
         method="trf",
         max_nfev=200,
     )
-    refined = unpack(result.x)
-    rms_before = float(np.sqrt(np.mean(before**2) * 2))
-    rms_after = float(np.sqrt(np.mean(result.fun**2) * 2))
+    return unpack(result.x), before, result.fun
+
+
+def _rms(residuals: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(residuals**2) * 2)) if len(residuals) else 0.0
+
+
+def refine_poses(
+    poses: dict[int, np.ndarray],
+    constraints: list[Constraint],
+    fixed: int,
+    loss_scale_px: float = 2.0,
+    max_loop_rms_px: float = 5.0,
+) -> Refinement:
+    """Least-squares poses consistent with the constraints; `fixed` keeps its pose."""
+    constraints = [c for c in constraints if c.a in poses and c.b in poses and len(c.xy_a)]
+    if not constraints or len(poses) < 2:
+        return Refinement(dict(poses), 0.0, 0.0, len(constraints))
+    refined, before, after = _solve(poses, constraints, fixed, loss_scale_px)
+    rms_before = _rms(before)
+    kept = [
+        c for c in constraints if not c.loop or _rms(_residuals(refined, [c])) <= max_loop_rms_px
+    ]
+    dropped = len(constraints) - len(kept)
+    if dropped:
+        refined, _, after = _solve(poses, kept, fixed, loss_scale_px)
     log.info(
-        "pose graph: %d keyframes, %d constraints, residual RMS %.2f -> %.2f px",
+        "pose graph: %d keyframes, %d constraints (%d loop closures dropped), "
+        "residual RMS %.2f -> %.2f px",
         len(poses),
-        len(constraints),
+        len(kept),
+        dropped,
         rms_before,
-        rms_after,
+        _rms(after),
     )
-    return Refinement(refined, rms_before, rms_after, len(constraints))
+    return Refinement(refined, rms_before, _rms(after), len(kept), dropped)

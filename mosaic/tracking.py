@@ -14,6 +14,7 @@ canvas, so a frame the canvas refuses leaves the tracker unchanged.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import OrderedDict
 from collections.abc import Callable
@@ -196,79 +197,87 @@ class KeyframeTracker:
         self._placements: dict[int, _Placement] = {}
         self._constraints: list[Constraint] = []
         self._last_pose: np.ndarray | None = None
-        self._last_shape: tuple[int, int] | None = None
         self._counters = _Counters()
         self._rng = np.random.default_rng(0)
+        self._lost = False  # the last frame failed against every candidate
+        self._lost_cursor = 0
 
     # -- proposing a placement -------------------------------------------------------------
+    def _overlaps(self, H_frame_to_ref: np.ndarray, shape: tuple[int, int]) -> dict[int, float]:
+        """Fraction of the frame (placed by `H_frame_to_ref`) inside each live keyframe."""
+        footprint = project(H_frame_to_ref, corners(shape))
+        return {
+            kf.id: overlap_fraction(footprint, kf.footprint())
+            for kf in self._keyframes.values()
+            if kf.features is not None
+        }
+
     def _candidates(self, shape: tuple[int, int]) -> list[Keyframe]:
-        """The active keyframe first, then the others most likely to overlap the frame."""
-        alive = [kf for kf in self._keyframes.values() if kf.features is not None]
-        if self._last_pose is None:
-            return alive[-1:]
-        predicted = project(self._last_pose, corners(shape))
-        others = [kf for kf in alive if kf.id != self._active]
+        """Keyframes to try, in order: those the predicted footprint (the last pose) overlaps
+        most, the active one first among equals; then, while lost, a rotating batch of all
+        others, so a camera returning anywhere on the map after a blink or a jump is found
+        again within a few frames."""
+        assert self._last_pose is not None
+        overlaps = self._overlaps(self._last_pose, shape)
         ranked = sorted(
-            others,
-            key=lambda kf: (overlap_fraction(predicted, kf.footprint()), kf.id),
+            (self._keyframes[k] for k in overlaps),
+            key=lambda kf: (overlaps[kf.id], kf.id == self._active, kf.id),
             reverse=True,
         )
-        active = [self._keyframes[self._active]] if self._active in self._keyframes else []
-        active = [kf for kf in active if kf.features is not None]
-        return active + ranked[: self._kcfg.relocalise_candidates]
+        n = 1 + self._kcfg.relocalise_candidates
+        nearby, rest = ranked[:n], ranked[n:]
+        if self._lost and rest:
+            start = self._lost_cursor % len(rest)
+            self._lost_cursor += n
+            return nearby + (rest[start:] + rest[:start])[:n]
+        return nearby
 
     def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
         if not self._keyframes:
             return Track(np.eye(3))
+        candidates = self._candidates(shape)
         first: Track | None = None
-        for attempt, kf in enumerate(self._candidates(shape), start=1):
+        for attempt, kf in enumerate(candidates, start=1):
             assert kf.features is not None
             matches, registration = _register(kf.features, features, self._config, timer)
             if registration.ok:
+                self._lost = False
                 H = kf.H_to_ref @ registration.H_cur_to_prev
-                return Track(
-                    H, registration, matches, kf.features, kf.id, kf.id != self._active, attempt
-                )
+                return Track(H, registration, matches, kf.features, kf.id, attempt > 1, attempt)
             if first is None:
-                first = Track(None, registration, matches, kf.features, kf.id, attempts=attempt)
+                first = Track(None, registration, matches, kf.features, kf.id)
+        self._lost = True
         assert first is not None
-        return Track(
-            None,
-            first.registration,
-            first.matches,
-            first.reference,
-            first.keyframe,
-            attempts=len(self._candidates(shape)),
-        )
+        return dataclasses.replace(first, attempts=len(candidates))
 
     # -- committing ------------------------------------------------------------------------
     def commit(self, index: int, features: Features, shape: tuple[int, int], track: Track) -> None:
         assert track.H_frame_to_ref is not None
-        self._last_pose, self._last_shape = track.H_frame_to_ref, shape
+        self._last_pose = track.H_frame_to_ref
         if track.keyframe is None:  # first frame of the segment
             self._promote(index, features, shape, track.H_frame_to_ref)
             return
-        kf = self._keyframes[track.keyframe]
         if track.relocalised:
             self._counters.relocalised += 1
-            log.info("frame %d relocalised on keyframe %d", index, kf.id)
-        self._active = kf.id
+            log.info("frame %d relocalised on keyframe %d", index, track.keyframe)
+        kf = self._keyframes[track.keyframe]
         H_frame_to_kf = np.linalg.inv(kf.H_to_ref) @ track.H_frame_to_ref
-        overlap = overlap_fraction(project(H_frame_to_kf, corners(shape)), corners(kf.shape))
-        if overlap >= self._kcfg.min_overlap:
-            self._placements[index] = _Placement(kf.id, H_frame_to_kf)
+        self._placements[index] = _Placement(kf.id, H_frame_to_kf)
+        overlaps = self._overlaps(track.H_frame_to_ref, shape)
+        best = max(overlaps, key=lambda k: (overlaps[k], k == kf.id))
+        if overlaps[best] >= self._kcfg.min_overlap:
+            self._active = best  # the next frame starts with the keyframe it overlaps most
             return
         new = self._promote(index, features, shape, track.H_frame_to_ref)
         self._add_constraint(new.id, kf.id, track)
         if self._kcfg.loop_closure:
-            self._close_loops(new, track.keyframe)
+            self._close_loops(new, kf.id)
 
     def _promote(
         self, index: int, features: Features, shape: tuple[int, int], H_to_ref: np.ndarray
     ) -> Keyframe:
-        kf = Keyframe(
-            len(self._keyframes) and max(self._keyframes) + 1, index, features, shape, H_to_ref
-        )
+        next_id = max(self._keyframes, default=-1) + 1
+        kf = Keyframe(next_id, index, features, shape, H_to_ref)
         self._keyframes[kf.id] = kf
         self._active = kf.id
         self._placements[index] = _Placement(kf.id, np.eye(3))
@@ -278,7 +287,7 @@ class KeyframeTracker:
             alive[0].features = None  # forget the oldest keyframe's features, keep its pose
         return kf
 
-    def _add_constraint(self, a: int, b: int, track: Track) -> None:
+    def _add_constraint(self, a: int, b: int, track: Track, loop: bool = False) -> None:
         """Inlier pairs of a registration between keyframe a (the frame) and b (reference)."""
         assert track.registration is not None and track.matches is not None
         assert track.reference is not None
@@ -289,7 +298,7 @@ class KeyframeTracker:
             keep = self._rng.choice(len(frame_xy), self.MAX_CONSTRAINT_POINTS, replace=False)
             frame_xy, ref_xy = frame_xy[keep], ref_xy[keep]
         self._constraints.append(
-            Constraint(a, b, frame_xy.astype(np.float64), ref_xy.astype(np.float64))
+            Constraint(a, b, frame_xy.astype(np.float64), ref_xy.astype(np.float64), loop)
         )
 
     def _close_loops(self, new: Keyframe, registered_to: int) -> None:
@@ -310,7 +319,7 @@ class KeyframeTracker:
             matches, registration = _register(old.features, new.features, self._config, _NoTimer)
             if registration.ok:
                 track = Track(None, registration, matches, old.features, old.id)
-                self._add_constraint(new.id, old.id, track)
+                self._add_constraint(new.id, old.id, track, loop=True)
                 self._counters.loop_closures += 1
                 log.info("loop closure: keyframe %d <-> %d", new.id, old.id)
 
@@ -326,6 +335,7 @@ class KeyframeTracker:
             "rms_before_px": round(result.rms_before_px, 3),
             "rms_after_px": round(result.rms_after_px, 3),
             "constraints": result.n_constraints,
+            "dropped_loop_closures": result.dropped_loops,
         }
         return result
 

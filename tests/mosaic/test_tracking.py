@@ -1,0 +1,130 @@
+"""Keyframe strategy vs the paper's chaining on synthetic videos with known trajectories."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from mosaic.config import Config, with_overrides
+from mosaic.pipeline import MosaicBuilder
+from mosaic.synth import SynthParams, render_frames
+from tests.helpers import corner_error
+
+SIZE = (400, 300)
+
+
+@pytest.fixture(scope="module")
+def trip(fundus):
+    """30 frames travelling far over the retina, with their ground truth."""
+    params = SynthParams(n_frames=30, size=SIZE, seed=7, max_step_px=16.0, nuisances=False)
+    frames, truth = zip(*render_frames(fundus, params), strict=True)
+    return list(frames), list(truth)
+
+
+def _config(strategy: str, **keyframes) -> Config:
+    return with_overrides(
+        Config(),
+        features={"detector": "sift", "max_keypoints": 600},
+        pipeline={"strategy": strategy, "on_failure": "skip"},
+        keyframes=keyframes,
+    )
+
+
+def _run(config: Config, frames: list[np.ndarray]):
+    """Build the mosaic; the frames are handed again for rendering from refined poses."""
+    builder = MosaicBuilder(config)
+    for index, image in enumerate(frames):
+        builder.process(index, image)
+    return builder.finish(reread=lambda: enumerate(frames))
+
+
+def _errors_to_first(result, truth: list[np.ndarray]) -> np.ndarray:
+    """Corner error (px) of each frame's pose relative to frame 0; inf when not placed."""
+    frames = result.report["frames"]
+    H0 = np.array(frames[0]["H_to_canvas"])
+    out = []
+    for entry, H_true_to_src in zip(frames, truth, strict=True):
+        if entry["H_to_canvas"] is None:
+            out.append(np.inf)
+            continue
+        H_est = np.linalg.inv(H0) @ np.array(entry["H_to_canvas"])
+        out.append(corner_error(H_est, np.linalg.inv(truth[0]) @ H_true_to_src, SIZE))
+    return np.array(out)
+
+
+def _noise(seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 255, (SIZE[1], SIZE[0], 3), dtype=np.uint8)
+
+
+def test_relocalisation_after_unusable_frames_continues_the_same_mosaic(trip):
+    frames, truth = trip
+    # After the trip, three unusable frames, then the camera is back at the start.
+    video = frames + [_noise(i) for i in range(3)] + frames[:6]
+    video_truth = truth + [truth[0]] * 3 + truth[:6]
+    chain = _run(_config("chain"), video)
+    keyframes = _run(_config("keyframes"), video)
+    back = slice(33, 39)
+    chain_status = [f["status"] for f in chain.report["frames"][back]]
+    assert chain_status == ["failed"] * 6  # chaining only knows the last frame, far away
+    entries = keyframes.report["frames"][back]
+    registered = [f for f in entries if f["status"] == "registered"]
+    assert len(registered) >= 4
+    assert {f["segment"] for f in registered} == {0}
+    assert keyframes.report["summary"]["tracking"]["relocalised"] >= 1
+    errors = _errors_to_first(keyframes, video_truth)[back]
+    assert np.all(errors[np.isfinite(errors)] < 5.0), errors
+
+
+def test_loop_closure_reduces_drift_at_the_end_of_a_loop(fundus, trip):
+    frames, truth = trip
+    rng = np.random.default_rng(0)
+    # The way back runs beside the way out (shifted by 45 % of the frame width): its frames
+    # become new keyframes that overlap the old ones only partly, which loop closure ties
+    # together. Noise keeps the errors of the two ways from cancelling.
+    shift = np.array([[1.0, 0, 0.45 * SIZE[0]], [0, 1.0, 0], [0, 0, 1.0]])
+    back_truth = [H @ shift for H in truth[::-1]]
+    back = [
+        np.clip(
+            cv2.warpPerspective(fundus, H, SIZE, flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+            + rng.normal(0, 4, (SIZE[1], SIZE[0], 3)),
+            0,
+            255,
+        ).astype(np.uint8)
+        for H in back_truth
+    ]
+    video, video_truth = frames + back, truth + back_truth
+    chain = _errors_to_first(_run(_config("chain"), video), video_truth)
+    without = _errors_to_first(_run(_config("keyframes", loop_closure=False), video), video_truth)
+    keyframes_run = _run(_config("keyframes"), video)
+    keyframes = _errors_to_first(keyframes_run, video_truth)
+    tracking = keyframes_run.report["summary"]["tracking"]
+    assert tracking["loop_closures"] >= 1
+    assert np.isfinite(keyframes).all()
+    assert keyframes[-1] < 3.0
+    assert keyframes[-1] < chain[-1]
+    assert keyframes.mean() < chain.mean()
+    assert keyframes.mean() <= without.mean() + 0.1
+
+
+def test_refinement_lowers_the_graph_residual(trip):
+    frames, _ = trip
+    result = _run(_config("keyframes"), frames + frames[::-1])
+    refinement = result.report["summary"]["tracking"]["refinement"][0]
+    assert refinement["rms_after_px"] <= refinement["rms_before_px"]
+
+
+def test_gating_skips_blurred_and_dark_frames(trip):
+    frames, _ = trip
+    video = list(frames[:14])
+    video[9] = cv2.GaussianBlur(video[9], (0, 0), 4.0)
+    dark = video[11].copy()
+    dark[:, 40:] = 0  # only a sliver of the view is lit
+    video[11] = dark
+    result = _run(_config("keyframes"), video)
+    frames_out = result.report["frames"]
+    assert frames_out[9]["status"] == "skipped" and "blurred" in frames_out[9]["reason"]
+    assert frames_out[11]["status"] == "skipped" and "field of view" in frames_out[11]["reason"]
+    summary = result.report["summary"]
+    assert summary["skipped"] == 2 and summary["registered"] == 12
+    assert summary["frames_until_failure"] == 12
