@@ -25,7 +25,14 @@ from glampoints.detector import WeightsError
 from mosaic.config import Config, load_config, with_overrides
 from mosaic.errors import InputError, MosaicError
 from mosaic.features import DETECTORS, FeatureExtractor
-from mosaic.io import check_output_path, open_frames, read_image, write_image, write_json
+from mosaic.io import (
+    check_output_path,
+    open_frames,
+    prefetch,
+    read_image,
+    write_image,
+    write_json,
+)
 from mosaic.pipeline import MosaicBuilder, MosaicResult, register_pair
 from mosaic.synth import SynthParams, write_synthetic_video
 from mosaic.viz import VIEWER_MODES, RerunViewer, make_viewer
@@ -136,7 +143,9 @@ def _viewer_args(
         raise InputError(f"unknown --rerun mode {mode!r} (choices: {', '.join(VIEWER_MODES)})")
     if spawn:
         if mode not in ("off", "spawn"):
-            raise InputError(f"--viewer is short for --rerun spawn; it cannot go with --rerun {mode}")
+            raise InputError(
+                f"--viewer is short for --rerun spawn; it cannot go with --rerun {mode}"
+            )
         mode = "spawn"
     if target is not None and mode not in ("save", "connect"):
         raise InputError(f"--rerun-target is only used with --rerun save or connect, not {mode}")
@@ -215,9 +224,7 @@ def build(
         interrupted = False
         with open_frames(video, config.pipeline.step, config.pipeline.max_frames) as frames:
             info = frames.info
-            viewer = make_viewer(
-                rerun, rerun_target, config, info, canvas_every=rerun_canvas_every
-            )
+            viewer = make_viewer(rerun, rerun_target, config, info, canvas_every=rerun_canvas_every)
             if isinstance(viewer, RerunViewer) and viewer.url:
                 typer.echo(f"rerun viewer: {viewer.url}")
             builder = MosaicBuilder(config, viewer=viewer)
@@ -232,7 +239,7 @@ def build(
                     logging_redirect_tqdm(),
                     tqdm(total=total, unit="frame", desc="mosaic", dynamic_ncols=True) as bar,
                 ):
-                    for frame in frames:
+                    for frame in prefetch(frames):
                         record = builder.process(frame.index, frame.image, frame.error)
                         registered += record.status == "registered"
                         bar.set_postfix(registered=registered, refresh=False)
@@ -355,6 +362,92 @@ def register(
             )
     if result["status"] != "registered":
         raise typer.Exit(1)
+
+
+@app.command()
+def evaluate(
+    inputs: Annotated[
+        list[Path], typer.Argument(help="Videos, frame folders, or folders holding videos.")
+    ],
+    detector: Annotated[
+        str | None,
+        typer.Option(help=f"Comma-separated detectors (default: all of {', '.join(DETECTORS)})."),
+    ] = None,
+    out: Annotated[Path, typer.Option(help="Folder for the tables (CSV, JSON) and plots.")] = Path(
+        "evaluation"
+    ),
+    config_path: Annotated[
+        Path | None, typer.Option("--config", "-c", help="TOML config (see sample_config.toml).")
+    ] = None,
+    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")] = None,
+    step: Annotated[int | None, typer.Option(help="Process every K-th frame.")] = None,
+    strategy: Annotated[
+        str | None, typer.Option(help="keyframes | chain (the paper's frame-to-frame).")
+    ] = None,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+) -> None:
+    """Compare detectors on videos: frames until failure, accuracy vs VIDEO.gt.json, drift."""
+    from mosaic.evaluate import format_video_tables, parse_detectors, run_video_evaluation
+
+    _setup_logging(verbose)
+    with _user_errors(), logging_redirect_tqdm():
+        config = _config(config_path, None, max_frames=max_frames, step=step, strategy=strategy)
+        names = parse_detectors(detector)
+        results, summary = run_video_evaluation(
+            inputs, config, names, out, explicit=detector is not None, progress=True
+        )
+        typer.echo(format_video_tables(results, summary))
+        typer.echo(f"tables and plots: {out}")
+
+
+@app.command()
+def bench(
+    size: Annotated[str, typer.Option(help="Frame size WIDTHxHEIGHT.")] = "660x350",
+    frames: Annotated[int, typer.Option(min=10, help="Frames of the synthetic video.")] = 100,
+    detector: Annotated[
+        str, typer.Option(help="Comma-separated detectors; the first is used for the variants.")
+    ] = "glampoints,sift,orb,akaze",
+    config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
+    rerun: Annotated[bool, typer.Option(help="Also measure the --rerun save overhead.")] = True,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print JSON instead of the table.")
+    ] = False,
+) -> None:
+    """Time the whole pipeline per detector on a synthetic video (ms per stage, frames/s)."""
+    from mosaic.bench import environment, format_table, run_bench
+
+    _setup_logging(False)
+    with _user_errors():
+        names = [name.strip() for name in detector.split(",") if name.strip()]
+        unknown = [name for name in names if name not in DETECTORS]
+        if unknown:
+            raise MosaicError(f"unknown detector(s) {', '.join(unknown)}")
+        config = load_config(config_path)
+        factory = None
+        if rerun:
+
+            def factory(path: Path) -> Any:
+                return make_viewer("save", path, config, None)
+
+        rows = run_bench(
+            names,
+            _parse_size(size),
+            frames,
+            config,
+            factory,
+            progress=lambda name: typer.echo(f"running {name} ...", err=True),
+        )
+        env = environment()
+        if as_json:
+            typer.echo(json.dumps({"environment": env, "rows": [r.__dict__ for r in rows]}))
+            return
+        typer.echo(format_table(rows))
+        notes = [f"{r.name}: {r.notes}" for r in rows if r.notes]
+        typer.echo(
+            "ms per frame (median); frame = decode..compose wall time, p90 over frames; "
+            f"x sift = fps ratio. {'; '.join(notes)}"
+        )
+        typer.echo("environment: " + ", ".join(f"{k}={v}" for k, v in env.items()))
 
 
 def main() -> None:

@@ -215,8 +215,10 @@ class FeatureExtractor:
         if self.config.descriptor == "native":
             return self.detector.native(prepared.gray, prepared.mask)
         keypoints, sizes = self.detector.detect(prepared.gray, prepared.mask)
-        # Detectors without a scale (GLAMpoints, grid) get the configured descriptor size.
-        sizes = np.where(sizes > 0, sizes, self.config.descriptor_size_px).astype(np.float32)
+        # Detectors without a scale (GLAMpoints, grid) get the configured descriptor size; large
+        # scales (ORB, BRISK pyramids) are capped: SIFT's cost grows with the square of the size.
+        size = self.config.descriptor_size_px
+        sizes = np.where(sizes > 0, np.minimum(sizes, 2 * size), size).astype(np.float32)
         return Features(
             keypoints.xy, keypoints.scores, sizes, np.zeros((len(sizes), 0), np.float32)
         )

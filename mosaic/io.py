@@ -12,18 +12,22 @@ from __future__ import annotations
 import json
 import logging
 import os
+import queue
 import re
 import tempfile
-from collections.abc import Iterator
+import threading
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
 
 from mosaic.errors import InputError, OutputError
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -443,3 +447,53 @@ def write_json(path: str | Path, obj: Any) -> Path:
 def sample_image_path() -> Path:
     """The fundus image shipped with the package (CC0): source of the synthetic sample video."""
     return Path(__file__).resolve().parent / "data" / "retina.jpg"
+
+
+# --------------------------------------------------------------------------------------------
+# Overlapping decode with processing
+# --------------------------------------------------------------------------------------------
+
+_END = object()
+
+
+def prefetch(items: Iterable[T], depth: int = 2) -> Iterator[T]:
+    """Iterate `items` while a background thread produces the next ones.
+
+    Decoding (OpenCV) releases the GIL, so frame i+1 is decoded while frame i is processed.
+    `depth` bounds how many items wait in memory. An exception in the producer is re-raised
+    here; leaving the loop early stops the producer.
+    """
+    if depth <= 0:
+        yield from items
+        return
+    buffer: queue.Queue[Any] = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def produce() -> None:
+        try:
+            for item in items:
+                while not stop.is_set():
+                    try:
+                        buffer.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            buffer.put(_END)
+        except BaseException as exc:  # handed to the consumer, which re-raises it
+            buffer.put(exc)
+
+    thread = threading.Thread(target=produce, name="prefetch", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = buffer.get()
+            if item is _END:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        thread.join(timeout=1.0)

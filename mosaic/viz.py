@@ -1,14 +1,80 @@
-"""Viewer sinks for the pipeline. The default is a no-op that imports nothing heavy.
+"""Viewer sinks for the pipeline: a no-op by default, or the live rerun viewer (issue 5).
 
-The live rerun viewer (issue 5) plugs in here, and only this module may import rerun.
+This is the only module of the project importing rerun, and it does so lazily inside
+`RerunViewer`, so `--rerun off` (the `NullViewer`) imports nothing heavy.
+
+Recording layout (timeline `frame`, sequence = frame index in the video):
+
+    video/frame                  input frame, JPEG, downscaled to `frame_max_side`
+    video/frame/keypoints        keypoints; class inlier / outlier (matched, rejected) / unmatched
+    video/frame/matches          segment from each matched keypoint to the position of its match
+                                 in the reference (previous or key) frame, both drawn in the
+                                 current frame's pixels; inlier / outlier
+    mosaic/canvas                mosaic canvas snapshot every `canvas_every` frames (and after the
+                                 last one), JPEG, downscaled to `canvas_max_side`
+    mosaic/outline               the frame's outline on the latest canvas snapshot
+    metrics/...                  keypoints, matches, inliers, reproj_error_px, ms/<stage>,
+                                 ms/total, ms/viewer (this sink's own cost), fps
+    log/status                   one text entry per frame: registered / failed (reason) / skipped
+    log/python/...               Python `logging` records of the `mosaic` loggers
+    run/config, run/video        static: the run's config (TOML) and the input's metadata
+    run/report                   static, at the end: the report summary
+
+Coordinates: the pipeline uses OpenCV's convention (pixel centres at integers), rerun draws
+pixel (u, v) over [u, u + 1) x [v, v + 1); points are shifted by half a pixel before scaling.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import logging
+import math
+import os
+import shutil
+import socket
+import sys
+import time
+import uuid
+import weakref
+from collections.abc import Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
+from urllib.parse import quote
+
+import numpy as np
+
+from mosaic.config import config_to_dict
+from mosaic.errors import ConfigError, OutputError
 
 if TYPE_CHECKING:
+    from mosaic.compose import Canvas
+    from mosaic.config import Config
+    from mosaic.io import VideoInfo
     from mosaic.pipeline import FrameEvent
+
+log = logging.getLogger(__name__)
+
+VIEWER_MODES = ("off", "spawn", "save", "serve", "connect")  # `--rerun` choices
+DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
+APPLICATION_ID = "retina-mosaic"
+
+# Keypoint / match classes (class ids of the annotation context logged under `video`).
+UNMATCHED, OUTLIER, INLIER = 0, 1, 2
+_CLASSES = {
+    UNMATCHED: ("unmatched", (150, 150, 150)),
+    OUTLIER: ("outlier", (235, 60, 50)),
+    INLIER: ("inlier", (40, 210, 80)),
+}
+_STAGE_COLORS = {
+    "preprocess": (140, 140, 140),
+    "detect": (70, 130, 230),
+    "describe": (150, 90, 220),
+    "match": (240, 160, 40),
+    "estimate": (230, 70, 70),
+    "compose": (40, 180, 170),
+}
+_LEVELS = {"registered": "INFO", "failed": "WARN", "skipped": "WARN"}
 
 
 class Viewer(Protocol):
@@ -31,3 +97,448 @@ class NullViewer:
 
     def finish(self, report: dict[str, Any]) -> None:
         pass
+
+
+# --------------------------------------------------------------------------------------------
+# Pure helpers (numpy / OpenCV only)
+# --------------------------------------------------------------------------------------------
+
+
+def fit_scale(shape: tuple[int, ...], max_side: int) -> float:
+    """Downscale factor (<= 1) bringing the longer side of an image of `shape` to `max_side`."""
+    return min(1.0, max_side / max(shape[0], shape[1], 1))
+
+
+def encode_jpeg(image: np.ndarray, scale: float, quality: int) -> tuple[bytes, tuple[float, float]]:
+    """JPEG bytes of a BGR/grey uint8 image resized by `scale`, and the exact (sx, sy) used."""
+    import cv2
+
+    h, w = image.shape[:2]
+    if scale < 1.0:
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise OutputError(f"cannot JPEG-encode a {w}x{h} image for the viewer")
+    return buf.tobytes(), (image.shape[1] / w, image.shape[0] / h)
+
+
+def to_display(xy: np.ndarray, scale_xy: tuple[float, float]) -> np.ndarray:
+    """(N, 2) OpenCV pixel coords -> rerun coords of the image shown at (sx, sy)."""
+    return ((xy + 0.5) * np.asarray(scale_xy, np.float32)).astype(np.float32, copy=False)
+
+
+def keypoint_classes(n_keypoints: int, idx_b: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+    """Class of each current keypoint: INLIER, OUTLIER (matched but rejected) or UNMATCHED."""
+    classes = np.full(n_keypoints, UNMATCHED, np.uint16)
+    classes[idx_b] = OUTLIER
+    classes[idx_b[inliers]] = INLIER
+    return classes
+
+
+def frame_outline(H_frame_to_display: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Closed (5, 2) outline of a width x height frame (pixel edges) mapped by a homography."""
+    x1, y1 = width - 0.5, height - 0.5
+    corners = np.array([[-0.5, -0.5, 1], [x1, -0.5, 1], [x1, y1, 1], [-0.5, y1, 1]], np.float64)
+    mapped = corners @ H_frame_to_display.T
+    pts = (mapped[:, :2] / mapped[:, 2:]).astype(np.float32)
+    return np.vstack([pts, pts[:1]])
+
+
+def config_toml(tables: Mapping[str, Mapping[str, Any]]) -> str:
+    """The config as TOML text (what a `--config` file with these values would contain)."""
+    lines: list[str] = []
+    for table, values in tables.items():
+        lines.append(f"[{table}]")
+        lines += [f"{key} = {json.dumps(value)}" for key, value in values.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _markdown_table(rows: Mapping[str, Any]) -> str:
+    body = "\n".join(f"| {key} | {value} |" for key, value in rows.items())
+    return f"| | |\n|---|---|\n{body}\n"
+
+
+def _scale_translate(sx: float, sy: float, tx: float, ty: float) -> np.ndarray:
+    return np.array([[sx, 0.0, sx * tx], [0.0, sy, sy * ty], [0.0, 0.0, 1.0]])
+
+
+def _status_text(event: FrameEvent) -> str:
+    record = event.record
+    head = f"frame {record.index} {record.status}"
+    if record.reason is not None:
+        return f"{head}: {record.reason}"
+    if record.n_matches == 0:
+        return f"{head}: reference of segment {record.segment}, {record.n_keypoints} keypoints"
+    return (
+        f"{head}: {record.n_inliers}/{record.n_matches} inliers, "
+        f"{record.reproj_error_px:.2f} px, {record.time_ms:.0f} ms"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# The rerun viewer
+# --------------------------------------------------------------------------------------------
+
+
+class RerunViewer:
+    """Logs every processed frame to a dedicated rerun recording (spawn, save, serve, connect)."""
+
+    def __init__(
+        self,
+        mode: str,
+        target: str | Path | None = None,
+        config: Config | None = None,
+        video_info: VideoInfo | None = None,
+        *,
+        canvas_every: int = 10,
+        canvas_max_side: int = 1024,
+        frame_max_side: int = 1024,
+        jpeg_quality: int = 80,
+        grpc_port: int = 9876,
+        web_port: int = 9090,
+        open_browser: bool = False,
+        flush_tick_s: float = 1.0,
+        logger_name: str = "mosaic",
+    ) -> None:
+        import rerun as rr
+
+        if mode not in VIEWER_MODES or mode == "off":
+            raise ConfigError(f"unknown rerun mode {mode!r} (choices: spawn, save, serve, connect)")
+        if canvas_every < 1:
+            raise ConfigError(f"canvas_every must be >= 1, got {canvas_every}")
+        self.mode = mode
+        self.url: str | None = None  # serve: the web viewer's URL; connect/spawn: the gRPC URL
+        self.canvas_every = canvas_every
+        self.canvas_max_side = canvas_max_side
+        self.frame_max_side = frame_max_side
+        self.jpeg_quality = jpeg_quality
+        self._rr = rr
+        # Batches of ~1 s instead of rerun's 0.2 s: several times fewer, larger chunks (each
+        # carries ~2 KB of overhead), hence a smaller .rrd, at the price of ~1 s live latency.
+        batching = rr.ChunkBatcherConfig(flush_tick=flush_tick_s)
+        self._rec = rr.RecordingStream(
+            APPLICATION_ID, recording_id=uuid.uuid4(), batcher_config=batching
+        )
+        self._open_sink(mode, target, grpc_port, web_port, open_browser)
+        self._finished = False
+        self._n_events = 0
+        self._last_t = time.perf_counter()
+        self._dt_ema: float | None = None
+        self._last_index: int | None = None
+        self._last_canvas: Canvas | None = None  # latest canvas seen, for the final snapshot
+        self._last_H_frame_to_ref: np.ndarray | None = None
+        self._last_frame_size: tuple[int, int] | None = None
+        self._snapshot_of: weakref.ref[Canvas] | None = None
+        self._snapshot_n_frames = 0
+        self._H_ref_to_snapshot = np.eye(3)  # reference frame -> rerun coords of the snapshot
+        self._log_static(config, video_info)
+        self._handler = _RecordingLogHandler(self._rec, "log/python")
+        self._logger = logging.getLogger(logger_name)
+        self._logger.addHandler(self._handler)
+
+    # ------------------------------------------------------------------------------ set-up
+
+    def _open_sink(
+        self, mode: str, target: str | Path | None, grpc_port: int, web_port: int, browser: bool
+    ) -> None:
+        blueprint = make_blueprint()
+        rec = self._rec
+        try:
+            if mode == "save":
+                if target is None:
+                    raise ConfigError("rerun save needs a target .rrd file")
+                rec.save(Path(target), default_blueprint=blueprint)
+            elif mode == "connect":
+                self.url = str(target) if target else DEFAULT_CONNECT_URL
+                rec.connect_grpc(self.url, default_blueprint=blueprint)
+            elif mode == "serve":
+                _check_port_free(grpc_port)  # rerun reports a busy gRPC port only in its log
+                grpc_url = rec.serve_grpc(grpc_port=grpc_port, default_blueprint=blueprint)
+                self._rr.serve_web_viewer(
+                    web_port=web_port, open_browser=browser, connect_to=grpc_url
+                )
+                self.url = f"http://localhost:{web_port}/?url={quote(grpc_url, safe='')}"
+            else:  # spawn
+                self._rr.spawn(
+                    port=grpc_port,
+                    executable_path=_viewer_executable(),
+                    default_blueprint=blueprint,
+                    recording=rec,
+                )
+                self.url = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
+        except (RuntimeError, OSError) as exc:
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise OutputError(f"cannot open the rerun viewer ({mode}): {first}") from exc
+
+    def _log_static(self, config: Config | None, video_info: VideoInfo | None) -> None:
+        rr, rec = self._rr, self._rec
+        if video_info is not None:
+            rec.send_recording_name(Path(str(video_info.path)).name)
+        md = rr.MediaType.MARKDOWN
+        if config is not None:
+            text = f"```toml\n{config_toml(config_to_dict(config))}```\n"
+            rec.log("run/config", rr.TextDocument(text, media_type=md), static=True)
+        if video_info is not None:
+            rows = dataclasses.asdict(video_info)
+            rec.log("run/video", rr.TextDocument(_markdown_table(rows), media_type=md), static=True)
+        classes = [
+            rr.ClassDescription(info=rr.AnnotationInfo(id=i, label=label, color=color))
+            for i, (label, color) in _CLASSES.items()
+        ]
+        rec.log("video", rr.AnnotationContext(classes), static=True)
+        series = {
+            "keypoints": (150, 150, 150),
+            "matches": (240, 160, 40),
+            "inliers": (40, 210, 80),
+            "reproj_error_px": (70, 130, 230),
+            "fps": (200, 80, 200),
+            "ms/total": (230, 230, 230),
+            "ms/viewer": (250, 220, 60),
+        } | {f"ms/{stage}": color for stage, color in _STAGE_COLORS.items()}
+        for name, color in series.items():
+            style = rr.SeriesLines(colors=[color], names=[name.removeprefix("ms/")])
+            rec.log(f"metrics/{name}", style, static=True)
+
+    # ------------------------------------------------------------------------------ per frame
+
+    def frame(self, event: FrameEvent) -> None:
+        """Log one processed frame: image, keypoints, matches, canvas, outline, status, metrics."""
+        start = time.perf_counter()
+        rr, rec, record = self._rr, self._rec, event.record
+        rec.set_time("frame", sequence=record.index)
+        self._last_index = record.index
+        if event.image is not None:
+            self._log_frame(event)
+        else:
+            rec.log("video/frame", rr.Clear(recursive=True))
+        if event.canvas is not None and event.canvas.n_frames > 0:
+            self._last_canvas = event.canvas
+            new_segment = self._snapshot_of is None or self._snapshot_of() is not event.canvas
+            if new_segment or self._n_events % self.canvas_every == 0:
+                self._log_canvas(event.canvas)
+        if record.H_frame_to_ref is not None and event.image is not None:
+            self._last_H_frame_to_ref = record.H_frame_to_ref
+            self._last_frame_size = (event.image.shape[1], event.image.shape[0])
+            self._log_outline()
+        else:
+            self._last_H_frame_to_ref = None
+            rec.log("mosaic/outline", rr.Clear(recursive=False))
+        level = _LEVELS.get(record.status, "INFO")
+        rec.log("log/status", rr.TextLog(_status_text(event), level=level))
+        self._log_metrics(event)
+        self._n_events += 1
+        rec.log("metrics/ms/viewer", rr.Scalars((time.perf_counter() - start) * 1e3))
+
+    def _log_frame(self, event: FrameEvent) -> None:
+        rr, rec = self._rr, self._rec
+        assert event.image is not None
+        scale = fit_scale(event.image.shape, self.frame_max_side)
+        jpeg, scale_xy = encode_jpeg(event.image, scale, self.jpeg_quality)
+        rec.log("video/frame", rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
+        features = event.features
+        if features is None:
+            rec.log("video/frame/keypoints", rr.Clear(recursive=False))
+            rec.log("video/frame/matches", rr.Clear(recursive=False))
+            return
+        xy = to_display(features.xy, scale_xy)
+        matches, reference = event.matches, event.reference
+        inliers = np.zeros(0 if matches is None else len(matches), bool)
+        if event.registration is not None and len(event.registration.inliers) == len(inliers):
+            inliers = event.registration.inliers
+        if matches is not None:
+            classes = keypoint_classes(len(features), matches.idx_b, inliers)
+        else:
+            classes = np.full(len(features), UNMATCHED, np.uint16)
+        radius = rr.Radius.ui_points(2.0)
+        rec.log("video/frame/keypoints", rr.Points2D(xy, class_ids=classes, radii=radius))
+        if matches is None or reference is None or len(matches) == 0:
+            rec.log("video/frame/matches", rr.LineStrips2D(np.zeros((0, 2, 2), np.float32)))
+            return
+        ref_xy = to_display(reference.xy[matches.idx_a], scale_xy)
+        segments = np.stack([xy[matches.idx_b], ref_xy], axis=1)
+        match_classes = np.where(inliers, INLIER, OUTLIER).astype(np.uint16)
+        strips = rr.LineStrips2D(segments, class_ids=match_classes, radii=rr.Radius.ui_points(0.75))
+        rec.log("video/frame/matches", strips)
+
+    def _log_canvas(self, canvas: Canvas) -> None:
+        """Log a downscaled snapshot of the canvas and remember how reference coords map onto it."""
+        image = canvas.render()
+        jpeg, (sx, sy) = encode_jpeg(
+            image, fit_scale(image.shape, self.canvas_max_side), self.jpeg_quality
+        )
+        self._rec.log(
+            "mosaic/canvas", self._rr.EncodedImage(contents=jpeg, media_type="image/jpeg")
+        )
+        # canvas pixel c (OpenCV) is drawn at (c + 0.5) * s in the snapshot
+        self._H_ref_to_snapshot = _scale_translate(sx, sy, 0.5, 0.5) @ canvas.H_ref_to_canvas
+        self._snapshot_of = weakref.ref(canvas)
+        self._snapshot_n_frames = canvas.n_frames
+
+    def _log_outline(self) -> None:
+        assert self._last_H_frame_to_ref is not None and self._last_frame_size is not None
+        H = self._H_ref_to_snapshot @ self._last_H_frame_to_ref
+        outline = frame_outline(H, *self._last_frame_size)
+        self._rec.log(
+            "mosaic/outline",
+            self._rr.LineStrips2D(
+                [outline], colors=[(255, 220, 0)], radii=self._rr.Radius.ui_points(1.5)
+            ),
+        )
+
+    def _log_metrics(self, event: FrameEvent) -> None:
+        rr, rec, record = self._rr, self._rec, event.record
+        now = time.perf_counter()
+        dt, self._last_t = now - self._last_t, now
+        self._dt_ema = dt if self._dt_ema is None else 0.8 * self._dt_ema + 0.2 * dt
+        values = {
+            "keypoints": record.n_keypoints,
+            "matches": record.n_matches,
+            "inliers": record.n_inliers,
+            "reproj_error_px": record.reproj_error_px,
+            "fps": 1.0 / self._dt_ema if self._dt_ema > 0 else math.nan,
+            "ms/total": record.time_ms,
+        } | {f"ms/{stage}": ms for stage, ms in record.stage_ms.items()}
+        for name, value in values.items():
+            rec.log(f"metrics/{name}", rr.Scalars(float(value)))
+
+    # ------------------------------------------------------------------------------ end
+
+    def finish(self, report: dict[str, Any]) -> None:
+        """Log the final canvas snapshot and the report, then `close`."""
+        if self._finished:
+            return
+        rr, rec = self._rr, self._rec
+        canvas = self._last_canvas
+        if canvas is not None and self._last_index is not None:
+            fresh = self._snapshot_of is not None and self._snapshot_of() is canvas
+            if not (fresh and self._snapshot_n_frames == canvas.n_frames):
+                rec.set_time("frame", sequence=self._last_index)
+                self._log_canvas(canvas)
+                if self._last_H_frame_to_ref is not None:
+                    self._log_outline()
+        self._last_canvas = None
+        summary = report.get("summary", {})
+        text = "# Run report\n\n" + _markdown_table(summary)
+        if report.get("segments"):
+            text += "\n## Segments\n\n" + "\n".join(
+                f"- segment {s['index']}: {s['frames']} frames, {s['width']}x{s['height']} px"
+                for s in report["segments"]
+            )
+        rec.log("run/report", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
+        self.close()
+
+    def close(self) -> None:
+        """Detach from `logging` and flush; the file of `save` is complete afterwards."""
+        if self._finished:
+            return
+        self._finished = True
+        self._logger.removeHandler(self._handler)
+        try:
+            self._rec.flush(timeout_sec=10.0)
+        except RuntimeError as exc:  # e.g. no viewer listening at the connect/spawn URL
+            log.warning("rerun viewer did not receive everything: %s", str(exc).splitlines()[0])
+        if self.mode != "serve":  # serve keeps the server alive for late viewers
+            self._rec.disconnect()
+
+
+class _RecordingLogHandler(logging.Handler):
+    """rerun's logging handler, writing into a dedicated recording instead of the global one."""
+
+    def __init__(self, recording: Any, path_prefix: str) -> None:
+        import rerun as rr
+
+        super().__init__()
+        self._rr = rr
+        self._rec = recording
+        self._prefix = path_prefix
+        self._levels = rr.LoggingHandler.LVL2NAME
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            level = self._levels.get(record.levelno) or record.levelname
+            path = f"{self._prefix}/{record.name.replace('.', '/')}"
+            self._rec.log(path, self._rr.TextLog(record.getMessage(), level=level))
+        except Exception:  # a logging handler must never raise into the caller
+            self.handleError(record)
+
+
+def _check_port_free(port: int) -> None:
+    with socket.socket() as probe:
+        try:
+            probe.bind(("0.0.0.0", port))
+        except OSError as exc:
+            raise OutputError(
+                f"cannot serve the rerun viewer: port {port} is in use ({exc.strerror})"
+            ) from exc
+
+
+def _viewer_executable() -> str:
+    """The native `rerun` viewer for `spawn` (PATH, else beside this Python: an unactivated
+    venv); fails early with advice on a headless Linux machine, where no window can open."""
+    if sys.platform.startswith("linux") and not (
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    ):
+        raise OutputError(
+            "rerun spawn needs a display (DISPLAY/WAYLAND_DISPLAY unset): "
+            "use --rerun serve and open the printed URL, or --rerun save FILE.rrd"
+        )
+    found = shutil.which("rerun") or shutil.which("rerun", path=str(Path(sys.executable).parent))
+    if found is None:
+        raise OutputError("rerun spawn needs the `rerun` viewer executable (pip install rerun-sdk)")
+    return found
+
+
+def make_blueprint() -> Any:
+    """Layout: frame + keypoints and time series on the left; canvas and logs on the right."""
+    import rerun.blueprint as rrb
+
+    counts = ["+ metrics/keypoints", "+ metrics/matches", "+ metrics/inliers"]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="video/frame", name="frame + keypoints"),
+                rrb.Tabs(
+                    rrb.TimeSeriesView(origin="metrics", contents=counts, name="keypoints"),
+                    rrb.TimeSeriesView(origin="metrics/ms", name="ms per stage"),
+                    rrb.TimeSeriesView(origin="metrics/reproj_error_px", name="reproj error"),
+                    rrb.TimeSeriesView(origin="metrics/fps", name="fps"),
+                ),
+                row_shares=[3, 2],
+            ),
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="mosaic", name="mosaic"),
+                rrb.Tabs(
+                    rrb.TextLogView(origin="log", name="log"),
+                    rrb.TextDocumentView(origin="run/report", name="report"),
+                    rrb.TextDocumentView(origin="run/config", name="config"),
+                    rrb.TextDocumentView(origin="run/video", name="video"),
+                ),
+                row_shares=[3, 2],
+            ),
+        ),
+        rrb.TimePanel(expanded=True),
+        collapse_panels=False,
+    )
+
+
+def make_viewer(
+    mode: str,
+    target: str | Path | None,
+    config: Config | None,
+    video_info: VideoInfo | None,
+    **options: Any,
+) -> Viewer:
+    """The viewer for `--rerun MODE`: `NullViewer` for off (rerun not imported), else rerun.
+
+    `target` is the .rrd file for save and the gRPC URL for connect (default
+    rerun+http://127.0.0.1:9876/proxy); the other modes take none. `options` go to `RerunViewer`.
+    """
+    if mode not in VIEWER_MODES:
+        raise ConfigError(f"unknown rerun mode {mode!r} (choices: {', '.join(VIEWER_MODES)})")
+    if target is not None and mode not in ("save", "connect"):
+        raise ConfigError(f"a rerun target is only used with save or connect, not {mode}")
+    if mode == "off":
+        return NullViewer()
+    return RerunViewer(mode, target, config, video_info, **options)

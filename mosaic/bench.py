@@ -1,0 +1,199 @@
+"""`mosaic bench`: speed of the whole pipeline per detector, measured in one run.
+
+A synthetic video is rendered from the shipped fundus image, then every detector processes it
+with the same settings. Per stage we report the median and p90 wall time per frame, end-to-end
+frames/s and the ratio to the SIFT pipeline; variants show what overlapping decode with
+processing (prefetch) gains and what the rerun recording costs. Ratios are what to read: the
+machines are noisy, so only numbers from the same run are compared.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import resource
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mosaic.config import Config, with_overrides
+from mosaic.errors import MosaicError
+from mosaic.io import open_frames, prefetch, sample_image_path
+from mosaic.pipeline import STAGES, MosaicBuilder
+from mosaic.synth import SynthParams, write_synthetic_video
+from mosaic.viz import Viewer
+
+log = logging.getLogger(__name__)
+
+WARMUP_FRAMES = 3  # first frames pay one-off costs (graph freezing, allocations)
+COLUMNS = ("decode", *STAGES)
+
+
+@dataclass(frozen=True)
+class BenchRow:
+    """Timings of one pipeline variant over the benchmark video."""
+
+    name: str
+    detector: str
+    stage_ms: dict[str, tuple[float, float]]  # stage -> (median, p90) per frame
+    frame_ms: tuple[float, float]  # whole frame (median, p90), decode included
+    fps: float  # frames per second end to end, after warm-up
+    registered: int
+    frames: int
+    peak_rss_mb: float  # process peak so far (monotone over the run)
+    notes: dict[str, Any] = field(default_factory=dict)
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _median_p90(values: list[float]) -> tuple[float, float]:
+    if not values:
+        return (float("nan"), float("nan"))
+    return float(np.median(values)), float(np.percentile(values, 90))
+
+
+def run_variant(
+    name: str,
+    video: Path,
+    config: Config,
+    prefetch_depth: int = 2,
+    viewer: Viewer | None = None,
+) -> BenchRow:
+    """Process the whole video once and collect per-stage timings."""
+    builder = MosaicBuilder(config, viewer=viewer)
+    decode: list[float] = []
+    frame_ms: list[float] = []
+    stage: dict[str, list[float]] = {s: [] for s in STAGES}
+    with open_frames(video) as source:
+        frames = iter(prefetch(source, prefetch_depth))
+        start = time.perf_counter()
+        timed_from = start
+        count = 0
+        while True:
+            t0 = time.perf_counter()
+            frame = next(frames, None)
+            if frame is None:
+                break
+            t1 = time.perf_counter()
+            record = builder.process(frame.index, frame.image, frame.error)
+            t2 = time.perf_counter()
+            count += 1
+            if count == WARMUP_FRAMES:
+                timed_from = t2
+            if count <= WARMUP_FRAMES:
+                continue
+            decode.append((t1 - t0) * 1e3)
+            frame_ms.append((t2 - t0) * 1e3)
+            for s in STAGES:
+                stage[s].append(record.stage_ms.get(s, 0.0))
+        elapsed = time.perf_counter() - timed_from
+    result = builder.finish()
+    summary = result.report["summary"]
+    stage_ms = {"decode": _median_p90(decode)} | {s: _median_p90(v) for s, v in stage.items()}
+    timed = max(count - WARMUP_FRAMES, 0)
+    return BenchRow(
+        name=name,
+        detector=config.features.detector,
+        stage_ms=stage_ms,
+        frame_ms=_median_p90(frame_ms),
+        fps=timed / elapsed if elapsed > 0 else float("nan"),
+        registered=summary["registered"],
+        frames=summary["frames_read"],
+        peak_rss_mb=_peak_rss_mb(),
+    )
+
+
+def make_video(folder: Path, size: tuple[int, int], n_frames: int, seed: int = 0) -> Path:
+    """The benchmark video: synthetic, rendered from the shipped sample image."""
+    video = folder / f"bench_{size[0]}x{size[1]}.mp4"
+    params = SynthParams(n_frames=n_frames, size=size, seed=seed)
+    write_synthetic_video(sample_image_path(), video, params)
+    return video
+
+
+def run_bench(
+    detectors: list[str],
+    size: tuple[int, int] = (660, 350),
+    n_frames: int = 100,
+    config: Config | None = None,
+    viewer_factory: Callable[[Path], Viewer] | None = None,
+    progress: Callable[[str], None] = lambda _: None,
+) -> list[BenchRow]:
+    """Every detector on one synthetic video, then the prefetch and viewer variants."""
+    config = config or Config()
+    rows: list[BenchRow] = []
+    with tempfile.TemporaryDirectory(prefix="mosaic-bench-") as tmp:
+        video = make_video(Path(tmp), size, n_frames)
+        for name in detectors:
+            progress(name)
+            try:
+                cfg = with_overrides(config, features={"detector": name})
+                rows.append(run_variant(name, video, cfg))
+            except (MosaicError, ValueError) as exc:  # e.g. glampoints without weights
+                log.warning("detector %s skipped: %s", name, exc)
+        if not rows:
+            return rows
+        base = rows[0]
+        cfg = with_overrides(config, features={"detector": base.detector})
+        progress(f"{base.name} without prefetch")
+        rows.append(run_variant(f"{base.name} (no prefetch)", video, cfg, prefetch_depth=0))
+        if viewer_factory is not None:
+            progress(f"{base.name} with --rerun save")
+            rrd = Path(tmp) / "bench.rrd"
+            viewer = viewer_factory(rrd)
+            row = run_variant(f"{base.name} (--rerun save)", video, cfg, viewer=viewer)
+            size_mb = rrd.stat().st_size / 2**20 if rrd.exists() else float("nan")
+            per_1000 = round(size_mb * 1000 / max(row.frames, 1), 1)
+            rows.append(dataclasses.replace(row, notes={"rrd_mb_per_1000_frames": per_1000}))
+    return rows
+
+
+def format_table(rows: list[BenchRow], reference: str = "sift") -> str:
+    """Rows = variants; columns = median ms per stage, frame median/p90, fps, ratio to SIFT."""
+    ref = next((r for r in rows if r.name == reference), None)
+    header = ["variant", *COLUMNS, "frame", "p90", "fps", f"x{reference}", "reg", "RSS MB"]
+    lines = []
+    for r in rows:
+        ratio = f"{r.fps / ref.fps:.2f}" if ref is not None and ref.fps > 0 else "-"
+        lines.append(
+            [
+                r.name,
+                *(f"{r.stage_ms[c][0]:.1f}" for c in COLUMNS),
+                f"{r.frame_ms[0]:.1f}",
+                f"{r.frame_ms[1]:.1f}",
+                f"{r.fps:.1f}",
+                ratio,
+                f"{r.registered}/{r.frames}",
+                f"{r.peak_rss_mb:.0f}",
+            ]
+        )
+    widths = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(header)]
+    fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
+    return "\n".join([fmt.format(*header), *(fmt.format(*line) for line in lines)])
+
+
+def environment() -> dict[str, Any]:
+    """Thread settings and hardware facts printed with the table."""
+    import os
+    import platform
+
+    import cv2
+    import torch
+
+    return {
+        "cpu_count": os.cpu_count(),
+        "machine": platform.machine(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "torch_interop_threads": torch.get_num_interop_threads(),
+        "opencv": cv2.__version__,
+        "opencv_threads": cv2.getNumThreads(),
+        "cuda": torch.cuda.is_available(),
+    }
