@@ -173,11 +173,174 @@ def registration_class(
     if failure_reason(H_est, n_matches) is not None:
         return "failed", float("nan"), float("nan")
     assert H_est is not None
-    gt = warp_points(H_gt, points).astype(np.float64)
-    est = warp_points(H_est, points).astype(np.float64)
-    err = np.linalg.norm(gt - est, axis=1)
-    err = np.where(np.isfinite(err), err, np.inf)
-    mee, mae = float(np.median(err)), float(np.max(err))
+    return classify_errors(point_errors(H_est, points, warp_points(H_gt, points)))
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation metrics beyond the training loss: NNDR AUC, coverage, registration errors, FIRE
+# --------------------------------------------------------------------------------------------
+
+COVERAGE_RADIUS_PX = 25.0  # disk around each true positive (paper, after Aldana-Iuit et al.)
+FIRE_THRESHOLDS_PX = np.arange(1, 26)  # t = 1..25 px, the FIRE success-curve thresholds
+FIRE_MAX_THRESHOLD_PX = 25.0
+
+
+def point_errors(H_a_to_b: np.ndarray, xy_a: np.ndarray, xy_b: np.ndarray) -> np.ndarray:
+    """(N,) float64 distances ||H xy_a - xy_b||: ground-truth points mapped by an estimate.
+
+    Non-finite mappings (a point sent to infinity) give inf, so they never pass a threshold.
+    """
+    mapped = warp_points(H_a_to_b, xy_a).astype(np.float64)
+    d = np.linalg.norm(mapped - np.asarray(xy_b, dtype=np.float64).reshape(-1, 2), axis=1)
+    return np.where(np.isfinite(d), d, np.inf)
+
+
+def classify_errors(errors: np.ndarray) -> tuple[str, float, float]:
+    """("acceptable" | "inaccurate", MEE, MAE) of a non-failed registration's point errors.
+
+    The paper's rule: acceptable when the median error < 10 px and the maximum < 30 px.
+    """
+    errors = np.asarray(errors, dtype=np.float64).ravel()
+    if errors.size == 0:
+        return "inaccurate", float("nan"), float("nan")
+    mee, mae = float(np.median(errors)), float(np.max(errors))
     if mee < ACCEPTABLE_MEE_PX and mae < ACCEPTABLE_MAE_PX:
         return "acceptable", mee, mae
     return "inaccurate", mee, mae
+
+
+def rmse(errors: np.ndarray) -> float:
+    """Root mean squared error of point distances (nan for none)."""
+    errors = np.asarray(errors, dtype=np.float64).ravel()
+    return float(np.sqrt(np.mean(errors**2))) if errors.size else float("nan")
+
+
+def nearest_neighbour_ratios(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each row of an (Na, Nb) descriptor distance matrix: nearest column and NNDR.
+
+    The ratio is d(1st NN) / d(2nd NN) (Lowe's test); 0 when there is a single column (no
+    second neighbour), 1 when both distances are 0 (indistinguishable).
+    """
+    d = np.asarray(distances, dtype=np.float64)
+    n_a, n_b = d.shape
+    if n_a == 0 or n_b == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.float64)
+    nearest = d.argmin(axis=1)
+    first = d[np.arange(n_a), nearest]
+    if n_b == 1:
+        return nearest, np.zeros(n_a)
+    second = np.partition(d, 1, axis=1)[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(second > 0, first / second, 1.0)
+    return nearest, ratio
+
+
+def nndr_auc(ratios: np.ndarray, correct: np.ndarray) -> float:
+    """Area under the ROC curve traced by the NNDR threshold t (a match is kept if ratio <= t).
+
+    Positives are nearest-neighbour matches that are correct under the ground truth, negatives
+    the others; sweeping t from 0 to 1 moves from (FPR, TPR) = (0, 0) to (1, 1). The area equals
+    the probability that a correct match has a lower ratio than a wrong one (ties count half).
+    nan when there is no correct or no wrong match (the curve is undefined).
+    """
+    ratios = np.asarray(ratios, dtype=np.float64).ravel()
+    correct = np.asarray(correct, dtype=bool).ravel()
+    pos, neg = ratios[correct], np.sort(ratios[~correct])
+    if pos.size == 0 or neg.size == 0:
+        return float("nan")
+    below = np.searchsorted(neg, pos, side="left")  # wrong matches with a lower ratio
+    not_above = np.searchsorted(neg, pos, side="right")
+    higher = neg.size - not_above
+    ties = not_above - below
+    return float((higher + 0.5 * ties).sum() / (pos.size * neg.size))
+
+
+def coverage_fraction(
+    xy: np.ndarray,
+    shape: tuple[int, ...],
+    radius_px: float = COVERAGE_RADIUS_PX,
+    mask: np.ndarray | None = None,
+) -> float:
+    """Fraction of the image covered by the union of disks of `radius_px` around the points.
+
+    The paper's coverage fraction of true-positive keypoints. Pixel (col, row) is covered when
+    its centre (col, row) lies within the radius of a point; disks are clipped at the image
+    border. With a `mask` (nonzero = counted), the fraction is of the masked area only.
+    """
+    h, w = shape[:2]
+    valid = np.ones((h, w), bool) if mask is None else np.asarray(mask) > 0
+    area = int(valid.sum())
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    if area == 0 or len(xy) == 0:
+        return 0.0
+    r = int(np.ceil(radius_px))
+    oy, ox = np.mgrid[-r : r + 2, -r : r + 2]  # offsets from floor(x, y) reaching every pixel
+    ox, oy = ox.ravel(), oy.ravel()
+    covered = np.zeros((h, w), bool)
+    for start in range(0, len(xy), 256):  # chunks bound memory to 256 x (2r + 3)^2 offsets
+        p = xy[start : start + 256]
+        px = np.floor(p[:, :1]).astype(np.int64) + ox
+        py = np.floor(p[:, 1:]).astype(np.int64) + oy
+        hit = (px - p[:, :1]) ** 2 + (py - p[:, 1:]) ** 2 <= radius_px**2
+        hit &= (px >= 0) & (px < w) & (py >= 0) & (py < h)
+        covered[py[hit], px[hit]] = True
+    return float((covered & valid).sum()) / area
+
+
+def success_curve(errors: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
+    """Fraction of pairs whose error is strictly below each threshold (inf = failed: never)."""
+    errors = np.asarray(errors, dtype=np.float64).ravel()
+    thresholds = np.asarray(thresholds, dtype=np.float64).ravel()
+    if errors.size == 0:
+        return np.full(thresholds.shape, np.nan)
+    return (errors[None, :] < thresholds[:, None]).mean(axis=1)
+
+
+def fire_auc(errors: np.ndarray, thresholds: np.ndarray = FIRE_THRESHOLDS_PX) -> float:
+    """FIRE protocol AUC: mean over t = 1..25 px of the fraction of pairs with error < t."""
+    return float(np.mean(success_curve(errors, thresholds)))
+
+
+def fire_auc_integral(errors: np.ndarray, max_px: float = FIRE_MAX_THRESHOLD_PX) -> float:
+    """The 0..25 variant: exact area under the success curve over t in [0, max_px] / max_px.
+
+    The area under F(t) = mean(e_i < t) is mean(max(0, max_px - e_i)), so this equals the mean
+    of clip(1 - e_i / max_px, 0, 1); failed pairs (inf) add 0.
+    """
+    errors = np.asarray(errors, dtype=np.float64).ravel()
+    if errors.size == 0:
+        return float("nan")
+    return float(np.mean(np.clip(1.0 - errors / max_px, 0.0, 1.0)))
+
+
+def mean_auc(errors_by_category: dict[str, np.ndarray]) -> float:
+    """mAUC: the mean of the per-category FIRE AUCs (e.g. S, P, A); nan without categories."""
+    aucs = [fire_auc(e) for e in errors_by_category.values() if np.asarray(e).size]
+    return float(np.mean(aucs)) if aucs else float("nan")
+
+
+def class_error_stats(
+    classes: np.ndarray, mee: np.ndarray, rmse_px: np.ndarray
+) -> dict[str, dict[str, float]]:
+    """Mean and std of MEE and RMSE per class: acceptable, inaccurate and all non-failed.
+
+    The paper's supplementary tables (MEE / RMSE per registration class); nan for an empty class.
+    """
+    classes = np.asarray(classes)
+    mee = np.asarray(mee, dtype=np.float64)
+    rmse_px = np.asarray(rmse_px, dtype=np.float64)
+    groups = {
+        "acceptable": classes == "acceptable",
+        "inaccurate": classes == "inaccurate",
+        "non_failed": classes != "failed",
+    }
+    out = {}
+    for name, sel in groups.items():
+        n = int(sel.sum())
+        stats = {"n": float(n)}
+        for key, values in (("mee", mee[sel]), ("rmse", rmse_px[sel])):
+            stats[f"{key}_mean"] = float(values.mean()) if n else float("nan")
+            stats[f"{key}_std"] = float(values.std()) if n else float("nan")
+        out[name] = stats
+    return out

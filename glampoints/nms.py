@@ -7,14 +7,18 @@ points are therefore more than `window_px // 2` pixels apart in Chebyshev distan
 Ties: two window maxima that lie in each other's window necessarily have equal scores; such a
 candidate is dropped when a tied candidate with a smaller raster index (y * W + x) lies in its
 window, so a flat plateau gives one point (its first pixel in raster order), never a cluster.
-Fully vectorised: two `max_pool2d` passes, no loop over pixels or keypoints.
+Fully vectorised: two window-maximum passes, no loop over pixels or keypoints. The window
+maximum is `max_pool2d`, or for CPU float32 maps the identical but ~100x faster `cv2.dilate`
+with a square kernel (its border reads as -FLT_MAX rather than -inf, which changes nothing
+for kept points since they must exceed the threshold).
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
+import torch.nn.functional as F  # noqa: N812 (PyTorch convention)
 
 
 def _radius(window_px: int) -> int:
@@ -23,7 +27,22 @@ def _radius(window_px: int) -> int:
     return window_px // 2
 
 
-def nms_mask(score: torch.Tensor, window_px: int = 10, threshold: float = 0.0) -> torch.Tensor:
+def window_max(x: torch.Tensor, radius: int, use_cv2: bool = True) -> torch.Tensor:
+    """Maximum over the (2 radius + 1)^2 window around each pixel of (B,1,H,W) `x`."""
+    k = 2 * radius + 1
+    if use_cv2 and x.device.type == "cpu" and x.dtype == torch.float32:
+        kernel = np.ones((k, k), dtype=np.uint8)
+        xn = x.contiguous().numpy()
+        out = np.empty_like(xn)
+        for b in range(xn.shape[0]):  # loop over the batch only
+            out[b, 0] = cv2.dilate(xn[b, 0], kernel, borderType=cv2.BORDER_CONSTANT)
+        return torch.from_numpy(out)
+    return F.max_pool2d(x, k, stride=1, padding=radius)
+
+
+def nms_mask(
+    score: torch.Tensor, window_px: int = 10, threshold: float = 0.0, use_cv2: bool = True
+) -> torch.Tensor:
     """Boolean (B,1,H,W) mask of the kept local maxima of a (B,1,H,W) score map."""
     if score.dim() != 4 or score.shape[1] != 1:
         raise ValueError(f"score map must be (B,1,H,W), got {tuple(score.shape)}")
@@ -31,8 +50,7 @@ def nms_mask(score: torch.Tensor, window_px: int = 10, threshold: float = 0.0) -
     score = score.detach()
     if r == 0:
         return score > threshold
-    k = 2 * r + 1
-    local_max = F.max_pool2d(score, k, stride=1, padding=r)
+    local_max = window_max(score, r, use_cv2)
     cand = (score == local_max) & (score > threshold)
     # Tie break: among candidates in one window (necessarily equal scores) keep the one with
     # the smallest raster index, found as a max-pool of the negated index.
@@ -40,7 +58,7 @@ def nms_mask(score: torch.Tensor, window_px: int = 10, threshold: float = 0.0) -
     dtype = torch.float32 if h * w < 2**24 else torch.float64
     index = torch.arange(h * w, dtype=dtype, device=score.device).view(1, 1, h, w)
     neg_index = torch.where(cand, -index, torch.full_like(index, -float(h * w)))
-    first = F.max_pool2d(neg_index, k, stride=1, padding=r)
+    first = window_max(neg_index, r, use_cv2)
     return cand & (neg_index == first)
 
 

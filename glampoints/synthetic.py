@@ -177,17 +177,14 @@ def fixed_pairs(
     return pairs
 
 
-def green_clahe(
-    image: np.ndarray, clip_limit: float = 2.0, tile_grid: int = 8
-) -> np.ndarray:
+def green_clahe(image: np.ndarray, clip_limit: float = 2.0, tile_grid: int = 8) -> np.ndarray:
     """Grey uint8 input the way the app pre-processes fundus frames: green channel + CLAHE.
 
     A BGR colour image (OpenCV order) gives its green channel; a grey image is used as is.
     """
+    grey = image
     if image.ndim == 3:
         grey = image[..., 1] if image.shape[2] >= 3 else image[..., 0]
-    else:
-        grey = image
     grey = np.ascontiguousarray(grey, dtype=np.uint8)
     clahe = cv2.createCLAHE(clipLimit=clip_limit, tileGridSize=(tile_grid, tile_grid))
     return clahe.apply(grey)

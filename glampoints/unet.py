@@ -9,7 +9,7 @@ transposed convolutions up, skip connections by concatenation: 487,145 learnable
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
+import torch.nn.functional as F  # noqa: N812 (PyTorch convention)
 from torch import nn
 
 CHANNELS: tuple[int, ...] = (8, 16, 32, 64, 128)
@@ -52,8 +52,8 @@ class UNet(nn.Module):
             self.dec.append(conv_block(2 * c, c))
         self.head = nn.Conv2d(self.channels[0], 1, kernel_size=1)
 
-    def forward_padded(self, x: torch.Tensor) -> torch.Tensor:
-        """The network proper; H and W must be multiples of 16."""
+    def features_padded(self, x: torch.Tensor) -> torch.Tensor:
+        """Last decoder features (B,8,H,W); H and W must be multiples of 16."""
         skips = []
         for block in self.down:
             x = block(x)
@@ -62,7 +62,11 @@ class UNet(nn.Module):
         x = self.bottleneck(x)
         for up, dec, skip in zip(self.up, self.dec, reversed(skips), strict=True):
             x = dec(torch.cat([up(x), skip], dim=1))
-        return torch.sigmoid(self.head(x))
+        return x
+
+    def forward_padded(self, x: torch.Tensor) -> torch.Tensor:
+        """The network proper; H and W must be multiples of 16."""
+        return torch.sigmoid(self.head(self.features_padded(x)))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, w = x.shape[-2:]

@@ -1,0 +1,218 @@
+"""`glampoints` command line: detect keypoints, train the detector, export weights, benchmark.
+
+User errors (missing files, bad weights, bad folders) print one line on stderr and exit 2.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated, NoReturn
+
+import cv2
+import numpy as np
+import typer
+
+from glampoints.detector import DEFAULT_WEIGHTS, GlamPoints, WeightsError, benchmark
+from glampoints.synthetic import green_clahe
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+
+
+def _fail(message: str) -> NoReturn:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code=2)
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+@app.command()
+def detect(
+    image: Annotated[Path, typer.Argument(help="input image (colour or grey)")],
+    output: Annotated[
+        Path | None, typer.Option("-o", "--output", help="write the image with keypoints drawn")
+    ] = None,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="print keypoints (xy, scores) as JSON")
+    ] = False,
+    weights: Annotated[Path | None, typer.Option(help="weights file (default: shipped)")] = None,
+    max_keypoints: Annotated[int | None, typer.Option(min=1, help="keep the strongest N")] = None,
+    nms_window: Annotated[int, typer.Option(min=1, help="NMS window in pixels")] = 10,
+    preprocess: Annotated[
+        bool, typer.Option(help="green channel + CLAHE first, as in training")
+    ] = True,
+) -> None:
+    """Detect GLAMpoints keypoints in one image."""
+    img = cv2.imread(str(image), cv2.IMREAD_COLOR)
+    if img is None:
+        _fail(f"cannot read image {image}")
+    grey = green_clahe(img) if preprocess else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    try:
+        det = GlamPoints.from_pretrained(
+            weights, nms_window_px=nms_window, max_keypoints=max_keypoints
+        )
+    except WeightsError as exc:
+        _fail(str(exc))
+    kps = det.detect(grey)
+    if output is not None:
+        canvas = img.copy()
+        for x, y in np.round(kps.xy).astype(int).tolist():
+            cv2.circle(canvas, (x, y), 3, (0, 255, 0), 1, lineType=cv2.LINE_AA)
+        try:
+            ok = cv2.imwrite(str(output), canvas)
+        except cv2.error:
+            ok = False
+        if not ok:
+            _fail(f"cannot write {output} (missing folder or unknown image extension)")
+    if as_json:
+        typer.echo(json.dumps({"xy": kps.xy.tolist(), "scores": kps.scores.tolist()}))
+    else:
+        typer.echo(f"{len(kps)} keypoints")
+
+
+@app.command()
+def train(
+    data: Annotated[Path, typer.Option(help="folder of training base images")],
+    val: Annotated[Path, typer.Option(help="folder of validation base images")],
+    out: Annotated[Path, typer.Option(help="output folder (checkpoints, metrics.jsonl)")],
+    epochs: Annotated[int, typer.Option(min=1)] = 35,
+    max_steps: Annotated[int | None, typer.Option(min=1, help="stop after N steps")] = None,
+    resume: Annotated[bool, typer.Option(help="continue from OUT/last.pt")] = False,
+    threads: Annotated[int, typer.Option(min=1, help="CPU threads")] = 2,
+    seed: Annotated[int, typer.Option()] = 0,
+    batch_size: Annotated[int, typer.Option(min=1)] = 5,
+    pairs_per_image: Annotated[int, typer.Option(min=1)] = 7,
+    verbose: Annotated[bool, typer.Option("-v", "--verbose")] = False,
+) -> None:
+    """Train GLAMpoints on synthetic pairs from the base images (the paper's schedule)."""
+    from glampoints.training import TrainConfig, TrainingError
+    from glampoints.training import train as run_training
+
+    _setup_logging(verbose)
+    cfg = TrainConfig(
+        data_dir=str(data),
+        val_dir=str(val),
+        out_dir=str(out),
+        epochs=epochs,
+        max_steps=max_steps,
+        num_threads=threads,
+        seed=seed,
+        batch_size=batch_size,
+        pairs_per_image=pairs_per_image,
+    )
+    try:
+        summary = run_training(cfg, resume=resume)
+    except TrainingError as exc:
+        _fail(str(exc))
+    typer.echo(f"stopped at epoch {summary['epoch']} step {summary['step']}", err=True)
+
+
+@app.command()
+def export(
+    checkpoint: Annotated[Path, typer.Argument(help="training checkpoint (best.pt / last.pt)")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="weights file")] = DEFAULT_WEIGHTS,
+) -> None:
+    """Write the model weights of a training checkpoint as a shippable weights file."""
+    from glampoints.training import TrainingError, export_weights
+
+    try:
+        dest = export_weights(checkpoint, output)
+    except (TrainingError, OSError) as exc:
+        _fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+    typer.echo(str(dest))
+
+
+@app.command()
+def bench(
+    width: Annotated[int, typer.Option(min=16)] = 660,
+    height: Annotated[int, typer.Option(min=16)] = 350,
+    repeats: Annotated[int, typer.Option(min=1)] = 20,
+    precision: Annotated[str, typer.Option(help="float32 | bfloat16")] = "float32",
+    threads: Annotated[int | None, typer.Option(min=1)] = None,
+    weights: Annotated[Path | None, typer.Option(help="weights file (default: shipped)")] = None,
+) -> None:
+    """Time the score map and NMS on the CPU for an image of WIDTH x HEIGHT."""
+    import torch
+
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        det = GlamPoints.from_pretrained(weights, precision=precision)
+    except (WeightsError, ValueError) as exc:
+        _fail(str(exc))
+    res = benchmark(det, (height, width), repeats)
+    typer.echo(
+        f"{width}x{height} {precision}, {int(res['threads'])} threads: "
+        f"score map {res['score_map_ms']:.1f} ms (min {res['score_map_min_ms']:.1f}), "
+        f"NMS {res['nms_ms']:.1f} ms (medians)"
+    )
+
+
+@app.command()
+def evaluate(
+    dataset: Annotated[Path, typer.Argument(help="dataset folder (FIRE, HPatches/Oxford, images)")],
+    fmt: Annotated[
+        str | None,
+        typer.Option("--format", help="fire | hpatches | synthetic (default: guessed)"),
+    ] = None,
+    detector: Annotated[
+        str | None, typer.Option(help="comma-separated detectors (default: all registered)")
+    ] = None,
+    out: Annotated[Path, typer.Option(help="folder for tables (CSV, JSON) and plots")] = Path(
+        "evaluation"
+    ),
+    scale: Annotated[
+        float | None,
+        typer.Option(help="detection scale (default: 0.15 for fire, the paper's; 1 otherwise)"),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="synthetic pairs: random seed")] = 0,
+    pairs_per_image: Annotated[int, typer.Option(min=1, help="synthetic pairs per image")] = 4,
+    max_pairs: Annotated[int, typer.Option(min=0, help="evaluate the first N pairs (0: all)")] = 0,
+    config: Annotated[
+        Path | None, typer.Option("--config", "-c", help="mosaic TOML config (pipeline stages)")
+    ] = None,
+    verbose: Annotated[bool, typer.Option("-v", "--verbose")] = False,
+) -> None:
+    """Compare detectors on image pairs with the paper's metrics and the FIRE protocol."""
+    # The CLI is the edge where the packages meet: the evaluation runs mosaic's pipeline stages,
+    # and glampoints never imports mosaic at module level, so it is imported here, lazily.
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from mosaic.config import load_config
+    from mosaic.datasets import open_dataset
+    from mosaic.errors import MosaicError
+    from mosaic.evaluate import format_pair_tables, parse_detectors, run_pair_evaluation
+
+    _setup_logging(verbose)
+    try:
+        with logging_redirect_tqdm():
+            names = parse_detectors(detector)
+            mosaic_config = load_config(config)
+            data = open_dataset(dataset, fmt, seed=seed, pairs_per_image=pairs_per_image)
+            _, summary = run_pair_evaluation(
+                data,
+                mosaic_config,
+                names,
+                out,
+                scale=scale,
+                max_pairs=max_pairs,
+                explicit=detector is not None,
+                progress=True,
+            )
+    except MosaicError as exc:
+        _fail(str(exc))
+    typer.echo(format_pair_tables(summary))
+    typer.echo(f"tables and plots: {out}")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()

@@ -1,0 +1,866 @@
+"""Detector evaluation: the paper's pair metrics, the FIRE protocol, and video registration.
+
+Pairs (`evaluate_pair`): each detector of the registry runs through the pipeline's own stages
+(`prepare` → `FeatureExtractor` → `match_descriptors` → `estimate_homography`) and is scored
+with the paper's criteria (`glampoints.metrics`): repeatability (3 px), M.score, NNDR matching
+AUC, coverage fraction of true positives, and the registration class (failed / inaccurate /
+acceptable) from the errors of ground-truth points (six fixed points for homography datasets,
+the control points for FIRE) with MEE / RMSE per class. Every pair also gets the FIRE protocol
+error (mean ground-truth point error at full resolution, inf when failed), from which the AUC
+over thresholds 1..25 px, its 0..25 integral variant, per-category AUCs and mAUC follow.
+
+Videos (`evaluate_video`): `MosaicBuilder` runs the video with `on_failure = "skip"`; frames are
+checked against the synthetic ground truth (`*.gt.json`) when there is one.
+
+Outputs (`write_pair_outputs`, `write_video_outputs`): CSV and JSON tables, per-pair/per-video
+rows and PNG plots. Pure metric definitions live in `glampoints.metrics`, not here.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from glampoints import metrics as gm
+from glampoints.detector import WeightsError
+from mosaic.config import Config, with_overrides
+from mosaic.datasets import FIRE_CATEGORIES, Pair, PairDataset
+from mosaic.errors import ConfigError, InputError, OutputError
+from mosaic.features import DETECTORS, FeatureExtractor
+from mosaic.io import IMAGE_READ_SUFFIXES, open_frames, write_json
+from mosaic.matching import distance_matrix, match_descriptors
+from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicBuilder
+from mosaic.preprocess import prepare
+from mosaic.registration import estimate_homography
+from mosaic.synth import corner_error, gt_path_for, load_ground_truth, relative_homographies
+
+log = logging.getLogger(__name__)
+
+EPS_PX = 3.0  # correctness radius of a keypoint / match (paper: 3 px)
+FIRE_SCALE = 0.15  # the paper's FIRE protocol: 2912 px images downscaled to 15 % for detection
+ACCURATE_CORNER_ERROR_PX = 10.0  # a video frame further than this from the truth is a failure
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv")
+CLASSES = ("failed", "inaccurate", "acceptable")
+
+
+# --------------------------------------------------------------------------------------------
+# Detectors
+# --------------------------------------------------------------------------------------------
+
+
+def parse_detectors(spec: str | None) -> list[str]:
+    """Detector names from "a,b,c" (None or "all": every detector of the registry)."""
+    if spec is None or spec.strip() in ("", "all"):
+        return list(DETECTORS)
+    names = [s.strip() for s in spec.split(",") if s.strip()]
+    unknown = [n for n in names if n not in DETECTORS]
+    if unknown:
+        raise ConfigError(
+            f"unknown detector {', '.join(unknown)} (choices: {', '.join(DETECTORS)})"
+        )
+    return list(dict.fromkeys(names))
+
+
+def make_extractors(
+    config: Config, names: Sequence[str], explicit: bool = True
+) -> dict[str, tuple[Config, FeatureExtractor]]:
+    """One (config, extractor) per detector; glampoints is skipped (warning) without weights.
+
+    With `explicit` False (the default list of every detector), detectors that the configured
+    descriptor does not support are skipped with a warning instead of raising.
+    """
+    built: dict[str, tuple[Config, FeatureExtractor]] = {}
+    for name in names:
+        cfg = with_overrides(config, features={"detector": name})
+        try:
+            built[name] = (cfg, FeatureExtractor(cfg.features))
+        except WeightsError as exc:
+            log.warning("skipping detector %s: %s", name, exc)
+        except ConfigError as exc:
+            if explicit:
+                raise
+            log.warning("skipping detector %s: %s", name, exc)
+    if not built:
+        raise ConfigError(f"none of the detectors {', '.join(names)} can run")
+    return built
+
+
+# --------------------------------------------------------------------------------------------
+# Pairs
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """Scores of one detector on one pair (one row of pairs.csv)."""
+
+    detector: str
+    pair: str
+    category: str
+    n_keypoints_1: int
+    n_keypoints_2: int
+    n_matches: int
+    n_true_positives: int
+    repeatability: float
+    matching_score: float
+    nndr_auc: float
+    coverage: float
+    n_inliers: int
+    status: str  # failed | inaccurate | acceptable
+    reason: str | None  # why it failed
+    mee_px: float  # median / max / RMS error of the ground-truth points, at detection scale
+    mae_px: float
+    rmse_px: float
+    error_px: float  # FIRE protocol: mean point error at full resolution; inf when failed
+    time_ms: float  # detection + description of both images
+    H_est_1_to_2: list[list[float]] | None = field(default=None, repr=False)  # full resolution
+
+
+def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> np.ndarray:
+    """H_full_to_scaled of a resize: pixel centres map as x' = (x + 0.5) * s - 0.5."""
+    sy = shape_scaled[0] / shape_full[0]
+    sx = shape_scaled[1] / shape_full[1]
+    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def _resize(image: np.ndarray, scale: float) -> np.ndarray:
+    if scale == 1.0:
+        return image
+    h, w = image.shape[:2]
+    size = (max(round(w * scale), 8), max(round(h * scale), 8))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def fit_homography(xy_1: np.ndarray, xy_2: np.ndarray) -> np.ndarray | None:
+    """Least-squares H_1_to_2 of control points (all of them, no RANSAC); None if < 4 points."""
+    if len(xy_1) < gm.MIN_MATCHES:
+        return None
+    H, _ = cv2.findHomography(xy_1.astype(np.float64), xy_2.astype(np.float64), 0)
+    return None if H is None else H / H[2, 2]
+
+
+def _ground_truth_points(
+    pair: Pair, S1: np.ndarray, S2: np.ndarray, shape1: tuple[int, ...]
+) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(points_in_2_to_1, src_full, dst_full, src_scaled, dst_scaled) for registration errors.
+
+    Homography datasets: the six fixed points of image 1 and their true positions in image 2.
+    FIRE: the control points of image 2 and their positions in image 1 (the error is measured
+    in the reference image, as in the FIRE protocol).
+    """
+    if pair.control_points is not None:
+        cp = pair.control_points
+        src, dst = cp[:, 2:4], cp[:, 0:2]
+        return True, src, dst, gm.warp_points(S2, src), gm.warp_points(S1, dst)
+    assert pair.H_1_to_2 is not None
+    h, w = pair.image1.shape[:2]
+    src = gm.six_fixed_points(w, h)
+    dst = gm.warp_points(pair.H_1_to_2, src)
+    src_s = gm.six_fixed_points(shape1[1], shape1[0])
+    H_s = S2 @ pair.H_1_to_2 @ np.linalg.inv(S1)
+    return False, src, dst, src_s, gm.warp_points(H_s, src_s)
+
+
+_FAILED_SCORES = ("failed", math.nan, math.nan, math.nan, math.inf, None)
+
+
+def _registration_scores(
+    pair: Pair,
+    H_est_scaled: np.ndarray | None,
+    S1: np.ndarray,
+    S2: np.ndarray,
+    shape1: tuple[int, ...],
+) -> tuple[str, float, float, float, float, np.ndarray | None]:
+    """(class, MEE, MAE, RMSE, FIRE error, H_est_1_to_2 at full resolution) of an estimate.
+
+    Class, MEE, MAE and RMSE are measured at detection scale (as the paper did on FIRE, whose
+    images it downscaled); the FIRE error at full resolution.
+    """
+    if H_est_scaled is None:
+        return _FAILED_SCORES
+    H_est = np.linalg.inv(S2) @ H_est_scaled @ S1
+    H_est /= H_est[2, 2]
+    to_1, src, dst, src_s, dst_s = _ground_truth_points(pair, S1, S2, shape1)
+    est, est_s = (
+        (np.linalg.inv(H_est), np.linalg.inv(H_est_scaled)) if to_1 else (H_est, H_est_scaled)
+    )
+    errors_s = gm.point_errors(est_s, src_s, dst_s)
+    status, mee, mae = gm.classify_errors(errors_s)
+    error_px = float(np.mean(gm.point_errors(est, src, dst)))
+    return status, mee, mae, gm.rmse(errors_s), error_px, H_est
+
+
+def evaluate_pair(
+    pair: Pair, config: Config, extractor: FeatureExtractor, scale: float = 1.0
+) -> PairResult:
+    """Run one detector on one pair through the pipeline's stages and score it.
+
+    Detection runs on both images resized by `scale`; the estimated homography is mapped back
+    to full resolution for the FIRE error. Failure follows the paper: fewer than 4 matches, a
+    reflection or a scale outside [0.1, 4] (`config.registration.min_inliers` is lowered to 4).
+    """
+    img1, img2 = _resize(pair.image1, scale), _resize(pair.image2, scale)
+    S1 = scale_matrix(pair.image1.shape, img1.shape)
+    S2 = scale_matrix(pair.image2.shape, img2.shape)
+    start = time.perf_counter()
+    prep1, prep2 = prepare(img1, config.preprocess), prepare(img2, config.preprocess)
+    f1, f2 = extractor(prep1), extractor(prep2)
+    time_ms = (time.perf_counter() - start) * 1e3
+    shape1, shape2 = prep1.gray.shape, prep2.gray.shape
+
+    H_gt_full = pair.H_1_to_2
+    if H_gt_full is None and pair.control_points is not None:
+        H_gt_full = fit_homography(pair.control_points[:, :2], pair.control_points[:, 2:])
+    matches = match_descriptors(f1.descriptors, f2.descriptors, config.matching)
+    xy1_m, xy2_m = f1.xy[matches.idx_a], f2.xy[matches.idx_b]
+
+    rep = ms = auc = cover = float("nan")
+    n_tp = 0
+    if H_gt_full is not None:
+        H = S2 @ H_gt_full @ np.linalg.inv(S1)
+        rep = gm.repeatability(f1.xy, f2.xy, H, shape1, shape2, EPS_PX)
+        ms = gm.matching_score(f1.xy, f2.xy, xy1_m, xy2_m, H, shape1, shape2, EPS_PX)
+        tp = gm.true_positive_mask(xy1_m, xy2_m, H, EPS_PX)
+        n_tp = int(tp.sum())
+        cover = gm.coverage_fraction(xy1_m[tp], shape1)
+        in1, in2 = gm.common_region(f1.xy, f2.xy, H, shape1, shape2)
+        if in1.any() and in2.any():
+            nearest, ratio = gm.nearest_neighbour_ratios(
+                distance_matrix(f1.descriptors[in1], f2.descriptors[in2])
+            )
+            correct = gm.true_positive_mask(f1.xy[in1], f2.xy[in2][nearest], H, EPS_PX)
+            auc = gm.nndr_auc(ratio, correct)
+
+    paper_rules = dataclasses.replace(config.registration, min_inliers=gm.MIN_MATCHES)
+    reg = estimate_homography(xy1_m, xy2_m, paper_rules)
+    scores = _registration_scores(pair, reg.H_cur_to_prev, S1, S2, shape1)
+    status, mee, mae, rms, error_px, H_full = scores if reg.ok else _FAILED_SCORES
+    return PairResult(
+        detector=extractor.detector.name,
+        pair=pair.name,
+        category=pair.category,
+        n_keypoints_1=len(f1),
+        n_keypoints_2=len(f2),
+        n_matches=len(matches),
+        n_true_positives=n_tp,
+        repeatability=rep,
+        matching_score=ms,
+        nndr_auc=auc,
+        coverage=cover,
+        n_inliers=reg.n_inliers,
+        status=status,
+        reason=reg.reason,
+        mee_px=mee,
+        mae_px=mae,
+        rmse_px=rms,
+        error_px=error_px,
+        time_ms=time_ms,
+        H_est_1_to_2=None if H_full is None else H_full.tolist(),
+    )
+
+
+def evaluate_pairs(
+    dataset: PairDataset,
+    extractors: dict[str, tuple[Config, FeatureExtractor]],
+    scale: float = 1.0,
+    max_pairs: int = 0,
+    progress: bool = False,
+) -> list[PairResult]:
+    """Every detector on every pair (each pair is read once); rows ordered pair by pair."""
+    n = len(dataset) if max_pairs <= 0 else min(max_pairs, len(dataset))
+    results = []
+    pairs = (p for _, p in zip(range(n), dataset, strict=False))
+    for pair in tqdm(pairs, total=n, unit="pair", desc="evaluate", disable=not progress):
+        for config, extractor in extractors.values():
+            results.append(evaluate_pair(pair, config, extractor, scale))
+    return results
+
+
+def _nanmean(values: Iterable[float]) -> float:
+    arr = np.asarray(list(values), dtype=np.float64)
+    arr = arr[np.isfinite(arr)]
+    return float(arr.mean()) if arr.size else math.nan
+
+
+def _category_key(category: str) -> tuple[int, str]:
+    """FIRE's order S, P, A first, then any other category alphabetically."""
+    order = {c: i for i, c in enumerate(FIRE_CATEGORIES)}
+    return order.get(category, len(order)), category
+
+
+def summarize_pairs(results: Sequence[PairResult]) -> list[dict[str, Any]]:
+    """One row per detector (in order of appearance): the paper's tables side by side."""
+    rows = []
+    for detector in dict.fromkeys(r.detector for r in results):
+        rs = [r for r in results if r.detector == detector]
+        classes = np.array([r.status for r in rs])
+        errors = np.array([r.error_px for r in rs])
+        row: dict[str, Any] = {
+            "detector": detector,
+            "pairs": len(rs),
+            "keypoints": _nanmean((r.n_keypoints_1 + r.n_keypoints_2) / 2 for r in rs),
+            "matches": _nanmean(r.n_matches for r in rs),
+            "true_positives": _nanmean(r.n_true_positives for r in rs),
+            "repeatability": _nanmean(r.repeatability for r in rs),
+            "m_score": _nanmean(r.matching_score for r in rs),
+            "nndr_auc": _nanmean(r.nndr_auc for r in rs),
+            "coverage": _nanmean(r.coverage for r in rs),
+        }
+        for cls in CLASSES:
+            row[f"{cls}_pct"] = 100.0 * float(np.mean(classes == cls))
+        stats = gm.class_error_stats(classes, [r.mee_px for r in rs], [r.rmse_px for r in rs])
+        for group, values in stats.items():
+            for key in ("mee_mean", "mee_std", "rmse_mean", "rmse_std"):
+                row[f"{group}_{key}"] = values[key]
+        row["auc"] = gm.fire_auc(errors)
+        row["auc_0_25"] = gm.fire_auc_integral(errors)
+        by_category = {
+            c: errors[[r.category == c for r in rs]] for c in dict.fromkeys(r.category for r in rs)
+        }
+        by_category.pop("", None)
+        for c, errs in sorted(by_category.items(), key=lambda kv: _category_key(kv[0])):
+            row[f"auc_{c}"] = gm.fire_auc(errs)
+        row["mauc"] = gm.mean_auc(by_category)
+        row["mean_error_px"] = _nanmean(errors)
+        row["time_ms"] = _nanmean(r.time_ms for r in rs)
+        rows.append(row)
+    return rows
+
+
+# --------------------------------------------------------------------------------------------
+# Tables
+# --------------------------------------------------------------------------------------------
+
+
+def _fmt(value: Any, spec: str) -> str:
+    if isinstance(value, float) and not math.isfinite(value):
+        return "-" if math.isnan(value) else "inf"
+    if value is None:
+        return "-"
+    return format(value, spec) if spec else str(value)
+
+
+def format_table(rows: Sequence[dict[str, Any]], columns: Sequence[tuple[str, str, str]]) -> str:
+    """Plain-text table: `columns` are (key, header, format spec); missing keys print "-"."""
+    cells = [[header for _, header, _ in columns]]
+    cells += [[_fmt(row.get(key), spec) for key, _, spec in columns] for row in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(columns))]
+    lines = [
+        "  ".join(
+            c.ljust(w) if i == 0 else c.rjust(w)
+            for i, (c, w) in enumerate(zip(r, widths, strict=True))
+        )
+        for r in cells
+    ]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+MATCHING_COLUMNS = (
+    ("detector", "detector", ""),
+    ("pairs", "pairs", "d"),
+    ("keypoints", "keypoints", ".1f"),
+    ("matches", "matches", ".1f"),
+    ("true_positives", "TPs", ".1f"),
+    ("repeatability", "repeat.", ".3f"),
+    ("m_score", "M.score", ".3f"),
+    ("nndr_auc", "NNDR AUC", ".3f"),
+    ("coverage", "coverage", ".3f"),
+    ("time_ms", "ms/pair", ".0f"),
+)
+REGISTRATION_COLUMNS = (
+    ("detector", "detector", ""),
+    ("failed_pct", "failed %", ".1f"),
+    ("inaccurate_pct", "inacc. %", ".1f"),
+    ("acceptable_pct", "accept. %", ".1f"),
+    ("acceptable_mee_mean", "MEE acc", ".2f"),
+    ("acceptable_rmse_mean", "RMSE acc", ".2f"),
+    ("non_failed_mee_mean", "MEE all", ".2f"),
+    ("non_failed_rmse_mean", "RMSE all", ".2f"),
+    ("auc", "AUC 1-25", ".3f"),
+    ("auc_0_25", "AUC 0-25", ".3f"),
+    ("mauc", "mAUC", ".3f"),
+    ("mean_error_px", "error px", ".2f"),
+)
+
+
+def format_pair_tables(summary: Sequence[dict[str, Any]]) -> str:
+    """The matching table and the registration table, one row per detector."""
+    categories = sorted(
+        {k[4:] for row in summary for k in row if k.startswith("auc_") and k != "auc_0_25"},
+        key=_category_key,
+    )
+    reg_cols = list(REGISTRATION_COLUMNS)
+    reg_cols[-2:-2] = [(f"auc_{c}", f"AUC {c}", ".3f") for c in categories]
+    return (
+        "Matching (means per pair)\n"
+        + format_table(summary, MATCHING_COLUMNS)
+        + "\n\nRegistration (MEE/RMSE at detection scale; AUC and error px at full resolution)\n"
+        + format_table(summary, reg_cols)
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Output files
+# --------------------------------------------------------------------------------------------
+
+
+def _prepare_out(out_dir: str | Path) -> Path:
+    out = Path(out_dir).expanduser()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create output folder {out}: {exc.strerror or exc}") from exc
+    return out
+
+
+def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
+    """Rows of dicts as CSV (columns: union of keys in first-seen order; nested values as JSON)."""
+    columns = list(dict.fromkeys(k for row in rows for k in row))
+    try:
+        with path.open("w", newline="", encoding="utf-8") as fh:
+            writer = csv.DictWriter(fh, fieldnames=columns, restval="")
+            writer.writeheader()
+            for row in rows:
+                writer.writerow({k: _csv_value(v) for k, v in row.items()})
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from exc
+    return path
+
+
+def _csv_value(value: Any) -> Any:
+    if isinstance(value, float):
+        return "" if math.isnan(value) else (f"{value:.6g}" if math.isfinite(value) else "inf")
+    return value
+
+
+def _json_safe(value: Any) -> Any:
+    """nan -> None and inf -> "inf", recursively (JSON has neither)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _pyplot() -> Any:
+    """matplotlib's pyplot on the Agg backend (imported lazily: only plotting needs it)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_pairs(
+    results: Sequence[PairResult], summary: Sequence[dict[str, Any]], out: Path
+) -> list[Path]:
+    """cumulative_error.png (fraction of pairs under t, per detector) and success_rates.png."""
+    plt = _pyplot()
+    t = np.linspace(0.0, gm.FIRE_MAX_THRESHOLD_PX, 251)
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for row in summary:
+        errors = np.array([r.error_px for r in results if r.detector == row["detector"]])
+        ax.plot(t, gm.success_curve(errors, t), label=f"{row['detector']} (AUC {row['auc']:.3f})")
+    ax.set_xlabel("error threshold t [px, full resolution]")
+    ax.set_ylabel("fraction of pairs with error < t")
+    ax.set_xlim(0, gm.FIRE_MAX_THRESHOLD_PX)
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    curve = out / "cumulative_error.png"
+    fig.savefig(curve, dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6.4, 0.5 * len(summary) + 1.4))
+    names = [row["detector"] for row in summary]
+    left = np.zeros(len(summary))
+    colours = {"failed": "#d62728", "inaccurate": "#ff7f0e", "acceptable": "#2ca02c"}
+    for cls in CLASSES:
+        values = np.array([row[f"{cls}_pct"] for row in summary])
+        ax.barh(names, values, left=left, color=colours[cls], label=cls)
+        left += values
+    ax.set_xlabel("pairs [%]")
+    ax.set_xlim(0, 100)
+    ax.invert_yaxis()
+    ax.legend(fontsize=8, ncol=3, loc="lower center", bbox_to_anchor=(0.5, 1.0))
+    fig.tight_layout()
+    bars = out / "success_rates.png"
+    fig.savefig(bars, dpi=120)
+    plt.close(fig)
+    return [curve, bars]
+
+
+def write_pair_outputs(
+    results: Sequence[PairResult],
+    summary: Sequence[dict[str, Any]],
+    out_dir: str | Path,
+    meta: dict[str, Any] | None = None,
+) -> list[Path]:
+    """summary.csv / summary.json (per detector), pairs.csv (per pair) and the two plots."""
+    out = _prepare_out(out_dir)
+    rows = [
+        {k: v for k, v in dataclasses.asdict(r).items() if k != "H_est_1_to_2"} for r in results
+    ]
+    written = [write_csv(out / "summary.csv", summary), write_csv(out / "pairs.csv", rows)]
+    document = {
+        "meta": meta or {},
+        "summary": list(summary),
+        "pairs": [dataclasses.asdict(r) for r in results],
+    }
+    written.append(write_json(out / "summary.json", _json_safe(document)))
+    written += plot_pairs(results, summary, out)
+    return written
+
+
+def run_pair_evaluation(
+    dataset: PairDataset,
+    config: Config,
+    detectors: Sequence[str],
+    out_dir: str | Path,
+    scale: float | None = None,
+    max_pairs: int = 0,
+    explicit: bool = True,
+    progress: bool = False,
+) -> tuple[list[PairResult], list[dict[str, Any]]]:
+    """Evaluate every detector on a dataset and write the tables and plots into `out_dir`.
+
+    `scale` None: 0.15 for FIRE (the paper's protocol), 1 otherwise.
+    """
+    if scale is None:
+        scale = FIRE_SCALE if dataset.format == "fire" else 1.0
+    if not 0.0 < scale <= 4.0:
+        raise InputError(f"scale must be in (0, 4], got {scale}")
+    _prepare_out(out_dir)
+    extractors = make_extractors(config, detectors, explicit)
+    results = evaluate_pairs(dataset, extractors, scale, max_pairs, progress)
+    summary = summarize_pairs(results)
+    meta = {
+        "dataset": str(dataset.root),
+        "format": dataset.format,
+        "scale": scale,
+        "detectors": list(extractors),
+        "config": dataclasses.asdict(config),
+    }
+    write_pair_outputs(results, summary, out_dir, meta)
+    return results, summary
+
+
+# --------------------------------------------------------------------------------------------
+# Videos
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class VideoResult:
+    """One detector on one video (one row of videos.csv)."""
+
+    detector: str
+    video: str
+    has_ground_truth: bool
+    frames: int  # frames read (including skipped ones)
+    registered: int
+    failed: int
+    skipped: int
+    registered_fraction: float  # registered / decoded frames
+    frames_until_failure: int  # registered (and, with ground truth, accurate) from the start
+    frames_until_failure_pipeline: int  # the pipeline's own count (registration failures only)
+    accurate_fraction: float  # registered within 10 px of the truth / decoded frames
+    mean_error_px: float  # corner error of registered frames (frame -> first frame)
+    median_error_px: float
+    max_error_px: float
+    drift_px_per_frame: float  # slope of the corner error against the frame index
+    mean_inliers: float
+    fps: float
+    errors: list[tuple[int, float]] = field(default_factory=list, repr=False)  # (index, px)
+
+
+def find_videos(paths: Sequence[str | Path]) -> list[Path]:
+    """Videos named on the command line: files, frame folders, or folders holding videos.
+
+    A folder with image files is one video (its frames); otherwise its video files and its
+    sub-folders that have a `<name>.gt.json` beside them are the videos.
+    """
+    found: list[Path] = []
+    for raw in paths:
+        p = Path(raw).expanduser()
+        if not p.exists():
+            raise InputError(f"input not found: {p}")
+        if p.is_file():
+            found.append(p)
+            continue
+        has_images = any(f.suffix.lower() in IMAGE_READ_SUFFIXES for f in p.iterdir())
+        if has_images:
+            found.append(p)
+            continue
+        inner = sorted(
+            f
+            for f in p.iterdir()
+            if (f.is_file() and f.suffix.lower() in VIDEO_SUFFIXES)
+            or (f.is_dir() and gt_path_for(f).is_file())
+        )
+        if not inner:
+            raise InputError(f"no videos or frames in {p}")
+        found += inner
+    return found
+
+
+def _video_errors(
+    frames: list[dict[str, Any]], gt: list[np.ndarray], size: tuple[int, int]
+) -> dict[int, float]:
+    """Corner error (px) of each registered frame of the first frame's segment, vs the truth."""
+    placed = [f for f in frames if f["status"] == REGISTERED and f["H_to_canvas"] is not None]
+    if not placed:
+        return {}
+    ref = placed[0]
+    H_ref_to_canvas = np.asarray(ref["H_to_canvas"], np.float64)
+    if ref["index"] >= len(gt):
+        return {}
+    rel = relative_homographies(gt, ref=ref["index"])
+    errors = {}
+    for f in placed:
+        if f["segment"] != ref["segment"]:
+            continue
+        if f["index"] >= len(gt):
+            log.warning("frame %d has no ground truth (%d frames in it)", f["index"], len(gt))
+            continue
+        H_i_to_ref = np.linalg.solve(H_ref_to_canvas, np.asarray(f["H_to_canvas"], np.float64))
+        errors[f["index"]] = corner_error(H_i_to_ref, rel[f["index"]], size)
+    return errors
+
+
+def _leading_accurate(frames: list[dict[str, Any]], errors: dict[int, float] | None) -> int:
+    """Registered (and accurate, when errors are given) frames from the start until a failure."""
+    count = 0
+    for f in frames:
+        if f["status"] == SKIPPED:
+            continue
+        if f["status"] == FAILED:
+            break
+        if errors is not None and not errors.get(f["index"], math.inf) <= ACCURATE_CORNER_ERROR_PX:
+            break
+        count += 1
+    return count
+
+
+def _reread(path: Path, step: int, max_frames: int) -> Callable[[], Iterator[tuple[int, Any]]]:
+    """A second pass over the video, for the pipeline's re-rendering from refined poses."""
+
+    def frames() -> Iterator[tuple[int, Any]]:
+        with open_frames(path, step, max_frames) as source:
+            for frame in source:
+                yield frame.index, frame.image
+
+    return frames
+
+
+def evaluate_video(
+    path: Path, config: Config, extractor: FeatureExtractor, progress: bool = False
+) -> VideoResult:
+    """Run the pipeline over a video (failed frames skipped) and score it against its truth.
+
+    The frames' poses are the ones `mosaic build` reports: after the strategy's refinement
+    (keyframes: pose graph) and re-rendering, so the video is read twice.
+    """
+    config = with_overrides(config, pipeline={"on_failure": "skip"})
+    builder = MosaicBuilder(config, extractor=extractor)
+    size: tuple[int, int] | None = None
+    with open_frames(path, config.pipeline.step, config.pipeline.max_frames) as source:
+        for frame in tqdm(
+            source,
+            total=source.expected_frames,
+            unit="frame",
+            desc=f"{extractor.detector.name} {path.name}",
+            disable=not progress,
+            leave=False,
+        ):
+            if frame.image is not None and size is None:
+                size = (frame.image.shape[1], frame.image.shape[0])
+            builder.process(frame.index, frame.image, frame.error)
+    reread = _reread(path, config.pipeline.step, config.pipeline.max_frames)
+    report = builder.finish(reread=reread).report  # refined poses, as `mosaic build` reports
+    frames, summary = report["frames"], report["summary"]
+    gt_file = gt_path_for(path)
+    errors: dict[int, float] | None = None
+    if gt_file.is_file() and size is not None:
+        errors = _video_errors(frames, load_ground_truth(gt_file), size)
+    decoded = max(summary["frames_read"] - summary["skipped"], 1)
+    values = np.array(list(errors.values())) if errors else np.zeros(0)
+    drift = math.nan
+    if len(values) >= 2:
+        idx = np.array(list(errors), dtype=np.float64)  # type: ignore[arg-type]
+        drift = float(np.polyfit(idx, values, 1)[0])
+    accurate = int((values <= ACCURATE_CORNER_ERROR_PX).sum()) if errors is not None else 0
+    return VideoResult(
+        detector=extractor.detector.name,
+        video=str(path),
+        has_ground_truth=errors is not None,
+        frames=summary["frames_read"],
+        registered=summary["registered"],
+        failed=summary["failed"],
+        skipped=summary["skipped"],
+        registered_fraction=summary["registered"] / decoded,
+        frames_until_failure=_leading_accurate(frames, errors),
+        frames_until_failure_pipeline=summary["frames_until_failure"],
+        accurate_fraction=accurate / decoded if errors is not None else math.nan,
+        mean_error_px=float(values.mean()) if values.size else math.nan,
+        median_error_px=float(np.median(values)) if values.size else math.nan,
+        max_error_px=float(values.max()) if values.size else math.nan,
+        drift_px_per_frame=drift,
+        mean_inliers=float(summary["mean_inliers"]),
+        fps=float(summary["fps"]),
+        errors=sorted(errors.items()) if errors else [],
+    )
+
+
+VIDEO_MEAN_KEYS = (
+    "frames",
+    "registered_fraction",
+    "frames_until_failure",
+    "frames_until_failure_pipeline",
+    "accurate_fraction",
+    "mean_error_px",
+    "max_error_px",
+    "drift_px_per_frame",
+    "mean_inliers",
+    "fps",
+)
+VIDEO_COLUMNS = (
+    ("detector", "detector", ""),
+    ("videos", "videos", "d"),
+    ("frames", "frames", ".1f"),
+    ("registered_fraction", "registered", ".3f"),
+    ("frames_until_failure", "until fail", ".2f"),
+    ("frames_until_failure_pipeline", "until fail (pipe)", ".2f"),
+    ("accurate_fraction", "accurate", ".3f"),
+    ("mean_error_px", "error px", ".2f"),
+    ("max_error_px", "max px", ".2f"),
+    ("drift_px_per_frame", "drift px/fr", ".3f"),
+    ("fps", "fps", ".1f"),
+)
+
+
+def summarize_videos(results: Sequence[VideoResult]) -> list[dict[str, Any]]:
+    """Mean over videos per detector (nan entries, e.g. no ground truth, are left out)."""
+    rows = []
+    for detector in dict.fromkeys(r.detector for r in results):
+        rs = [r for r in results if r.detector == detector]
+        row: dict[str, Any] = {"detector": detector, "videos": len(rs)}
+        row.update({k: _nanmean(getattr(r, k) for r in rs) for k in VIDEO_MEAN_KEYS})
+        rows.append(row)
+    return rows
+
+
+def format_video_tables(results: Sequence[VideoResult], summary: Sequence[dict[str, Any]]) -> str:
+    """Per-video tables (one per detector) and the mean over videos."""
+    per_video = [
+        {**dataclasses.asdict(r), "videos": 1, "detector": f"{r.detector} {Path(r.video).name}"}
+        for r in results
+    ]
+    return (
+        "Per video\n"
+        + format_table(per_video, VIDEO_COLUMNS)
+        + "\n\nMean over videos\n"
+        + format_table(summary, VIDEO_COLUMNS)
+    )
+
+
+def plot_videos(
+    results: Sequence[VideoResult], summary: Sequence[dict[str, Any]], out: Path
+) -> list[Path]:
+    """video_frames_until_failure.png (bars) and video_error.png (error against frame index)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 0.5 * len(summary) + 1.4))
+    names = [row["detector"] for row in summary]
+    ax.barh(names, [row["frames_until_failure"] for row in summary], color="#1f77b4")
+    ax.set_xlabel("frames until failure (mean over videos)")
+    ax.invert_yaxis()
+    fig.tight_layout()
+    bars = out / "video_frames_until_failure.png"
+    fig.savefig(bars, dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    colours = {name: f"C{i % 10}" for i, name in enumerate(names)}
+    labelled: set[str] = set()
+    for r in results:
+        if not r.errors:
+            continue
+        idx, err = zip(*r.errors, strict=True)
+        label = r.detector if r.detector not in labelled else None
+        labelled.add(r.detector)
+        ax.plot(idx, err, color=colours.get(r.detector), alpha=0.8, lw=1, label=label)
+    ax.axhline(ACCURATE_CORNER_ERROR_PX, color="k", ls="--", lw=0.8)
+    ax.set_xlabel("frame index")
+    ax.set_ylabel("corner error vs ground truth [px]")
+    ax.set_yscale("symlog", linthresh=1.0)
+    ax.set_ylim(bottom=0.0)
+    ax.grid(alpha=0.3)
+    if labelled:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    curve = out / "video_error.png"
+    fig.savefig(curve, dpi=120)
+    plt.close(fig)
+    return [bars, curve]
+
+
+def write_video_outputs(
+    results: Sequence[VideoResult],
+    summary: Sequence[dict[str, Any]],
+    out_dir: str | Path,
+    meta: dict[str, Any] | None = None,
+) -> list[Path]:
+    """videos.csv (per video), video_summary.csv / video_evaluation.json and the plots."""
+    out = _prepare_out(out_dir)
+    rows = [{k: v for k, v in dataclasses.asdict(r).items() if k != "errors"} for r in results]
+    written = [write_csv(out / "videos.csv", rows), write_csv(out / "video_summary.csv", summary)]
+    document = {
+        "meta": meta or {},
+        "summary": list(summary),
+        "videos": [dataclasses.asdict(r) for r in results],
+    }
+    written.append(write_json(out / "video_evaluation.json", _json_safe(document)))
+    written += plot_videos(results, summary, out)
+    return written
+
+
+def run_video_evaluation(
+    paths: Sequence[str | Path],
+    config: Config,
+    detectors: Sequence[str],
+    out_dir: str | Path,
+    explicit: bool = True,
+    progress: bool = False,
+) -> tuple[list[VideoResult], list[dict[str, Any]]]:
+    """Evaluate every detector on every video and write the tables and plots into `out_dir`."""
+    videos = find_videos(paths)
+    _prepare_out(out_dir)
+    extractors = make_extractors(config, detectors, explicit)
+    results = []
+    for video in videos:
+        for cfg, extractor in extractors.values():
+            results.append(evaluate_video(video, cfg, extractor, progress))
+    summary = summarize_videos(results)
+    meta = {
+        "videos": [str(v) for v in videos],
+        "detectors": list(extractors),
+        "config": dataclasses.asdict(config),
+    }
+    write_video_outputs(results, summary, out_dir, meta)
+    return results, summary
