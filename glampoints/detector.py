@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from glampoints.nms import nms_numpy
+from glampoints.nms import nms_numpy, refine_subpixel
 from glampoints.unet import UNet, pad_to_multiple
 
 log = logging.getLogger(__name__)
@@ -159,6 +159,7 @@ class GlamPoints:
         max_keypoints: int | None = None,
         device: torch.device | str = "cpu",
         precision: str = "float32",
+        subpixel: bool = True,
     ) -> None:
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision}")
@@ -169,6 +170,7 @@ class GlamPoints:
         self.max_keypoints = max_keypoints
         self.device = torch.device(device)
         self.precision = precision
+        self.subpixel = subpixel  # quadratic peak refinement of the NMS positions
         self.net = UNet().to(self.device).eval()
         self.meta: dict[str, Any] = {}
         self._infer: nn.Module | None = None
@@ -239,8 +241,14 @@ class GlamPoints:
         if mask is not None:
             if mask.shape[:2] != s.shape:
                 raise ValueError(f"mask shape {mask.shape} differs from image shape {s.shape}")
-            s = np.where(mask > 0, s, -np.inf).astype(np.float32)
-        xy, scores = nms_numpy(s, self.nms_window_px, self.score_threshold, self.max_keypoints)
+            masked = np.where(mask > 0, s, -np.inf).astype(np.float32)
+        else:
+            masked = s
+        xy, scores = nms_numpy(
+            masked, self.nms_window_px, self.score_threshold, self.max_keypoints
+        )
+        if self.subpixel:
+            xy = refine_subpixel(s, xy)
         return Keypoints(xy=xy, scores=scores)
 
 
