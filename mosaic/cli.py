@@ -382,19 +382,30 @@ def evaluate(
     max_frames: Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")] = None,
     step: Annotated[int | None, typer.Option(help="Process every K-th frame.")] = None,
     strategy: Annotated[
-        str | None, typer.Option(help="keyframes | chain (the paper's frame-to-frame).")
-    ] = None,
+        str,
+        typer.Option(help="Comma-separated strategies: keyframes, chain (the paper's)."),
+    ] = "keyframes,chain",
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
-    """Compare detectors on videos: frames until failure, accuracy vs VIDEO.gt.json, drift."""
+    """Compare detectors and strategies on videos: frames until failure, accuracy vs
+    VIDEO.gt.json, drift, speed."""
     from mosaic.evaluate import format_video_tables, parse_detectors, run_video_evaluation
 
     _setup_logging(verbose)
     with _user_errors(), logging_redirect_tqdm():
-        config = _config(config_path, None, max_frames=max_frames, step=step, strategy=strategy)
+        config = _config(config_path, None, max_frames=max_frames, step=step)
+        strategies = [name.strip() for name in strategy.split(",") if name.strip()]
+        for name in strategies:
+            with_overrides(config, pipeline={"strategy": name})  # validates the name
         names = parse_detectors(detector)
         results, summary = run_video_evaluation(
-            inputs, config, names, out, explicit=detector is not None, progress=True
+            inputs,
+            config,
+            names,
+            out,
+            explicit=detector is not None,
+            progress=True,
+            strategies=strategies,
         )
         typer.echo(format_video_tables(results, summary))
         typer.echo(f"tables and plots: {out}")

@@ -570,7 +570,7 @@ def run_pair_evaluation(
 class VideoResult:
     """One detector on one video (one row of videos.csv)."""
 
-    detector: str
+    detector: str  # "name/strategy", e.g. "sift/keyframes"
     video: str
     has_ground_truth: bool
     frames: int  # frames read (including skipped ones)
@@ -707,7 +707,7 @@ def evaluate_video(
         drift = float(np.polyfit(idx, values, 1)[0])
     accurate = int((values <= ACCURATE_CORNER_ERROR_PX).sum()) if errors is not None else 0
     return VideoResult(
-        detector=extractor.detector.name,
+        detector=f"{extractor.detector.name}/{config.pipeline.strategy}",
         video=str(path),
         has_ground_truth=errors is not None,
         frames=summary["frames_read"],
@@ -847,15 +847,18 @@ def run_video_evaluation(
     out_dir: str | Path,
     explicit: bool = True,
     progress: bool = False,
+    strategies: Sequence[str] = ("keyframes", "chain"),
 ) -> tuple[list[VideoResult], list[dict[str, Any]]]:
-    """Evaluate every detector on every video and write the tables and plots into `out_dir`."""
+    """Evaluate every detector with every strategy on every video; write tables and plots."""
     videos = find_videos(paths)
     _prepare_out(out_dir)
     extractors = make_extractors(config, detectors, explicit)
     results = []
     for video in videos:
         for cfg, extractor in extractors.values():
-            results.append(evaluate_video(video, cfg, extractor, progress))
+            for strategy in strategies:
+                cfg_strategy = with_overrides(cfg, pipeline={"strategy": strategy})
+                results.append(evaluate_video(video, cfg_strategy, extractor, progress))
     summary = summarize_videos(results)
     meta = {
         "videos": [str(v) for v in videos],

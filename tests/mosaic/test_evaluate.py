@@ -161,7 +161,10 @@ def test_video_evaluation_end_to_end(small_video, tmp_path):
     assert result.exit_code == 0, result.output
     assert "Mean over videos" in result.output
     document = json.loads((out / "video_evaluation.json").read_text())
-    with_truth, without = document["videos"]
+    # Both strategies side by side (the default), per video.
+    assert [v["detector"] for v in document["videos"]] == ["sift/keyframes", "sift/chain"] * 2
+    assert [row["detector"] for row in document["summary"]] == ["sift/keyframes", "sift/chain"]
+    with_truth, without = (v for v in document["videos"] if v["detector"] == "sift/keyframes")
     assert with_truth["has_ground_truth"] and not without["has_ground_truth"]
     assert with_truth["frames"] == 6 and with_truth["registered"] == 6
     assert with_truth["frames_until_failure"] == 6
