@@ -3,6 +3,26 @@
 Paper: 128-d root-SIFT (Arandjelović & Zisserman) computed at each keypoint "without rotation
 invariance" (orientation fixed to 0), because it matched fundus images better than the
 rotation-invariant version.
+
+`upright_rootsift` computes SIFT's descriptor densely instead of per keypoint, so its cost is
+one pass over the image plus a fixed amount per point, whatever the keypoint sizes:
+
+1. The image is blurred as OpenCV's SIFT blurs its base layer for keypoints given to `compute`
+   (sigma 1.6 over an assumed 0.5), and its gradients are binned into 8 orientation channels
+   with linear interpolation between the two nearest bins (SIFT's orientation soft-binning).
+2. SIFT pools each channel over a 4x4 grid of cells with a triangular (bilinear) kernel whose
+   half-width is the cell width `3 * size / 2`. A triangle of any real half-width h at any real
+   position is the second difference, with step h, of the channel's second-order summed-area
+   table D(x) = sum_k f_k * max(0, x - k); D is piecewise (bi)linear between pixel centres, so
+   bilinear interpolation of D is exact. With D tabulated once per image (two `cv2.integral`
+   passes, float64), every keypoint costs 36 bilinear reads of D (a 6x6 lattice whose second
+   differences are the 16 cells), exactly, for every size; no scale pyramid, no size groups.
+3. SIFT's Gaussian window (sigma = half the descriptor width) is applied per cell, then the
+   descriptor is L2-normalised, clipped at 0.2, renormalised, and made root-SIFT.
+
+Differences from OpenCV's `SIFT.compute`: the Gaussian window weights cells, not pixels (it is
+smooth across a cell), points keep their sub-pixel position (OpenCV rounds it), and values are
+not rounded to SIFT's byte scale. The OpenCV path stays available as `upright_rootsift_opencv`.
 """
 
 from __future__ import annotations
@@ -12,6 +32,20 @@ import numpy as np
 
 DESCRIPTOR_DIM = 128
 _EPS = 1e-12
+_N_CELLS = 4  # SIFT: 4x4 spatial cells ...
+_N_ORI = 8  # ... of 8 orientation bins
+_CELL_PER_SIZE = 1.5  # cell width = SIFT_DESCR_SCL_FCTR (3) * keypoint scale (size / 2)
+_BASE_SIGMA = float(np.sqrt(1.6**2 - 0.5**2))  # OpenCV SIFT base layer: 1.6 over assumed 0.5
+_CLIP = 0.2  # SIFT's clipping of normalised bins (illumination robustness)
+_MIN_CELL_BLOCKS = 2.0  # pool at the coarsest pyramid level with cells >= 2 blocks wide
+_MAX_LEVEL = 5
+# Lattice j = 0..5 at offsets (j - 2.5) cells: cell c's centre is node c + 1, and its triangle is
+# the second difference over nodes c, c + 1, c + 2.
+_LATTICE = np.arange(_N_CELLS + 2, dtype=np.float64) - (_N_CELLS + 1) / 2
+# SIFT's window: exp(-(u^2 + v^2) / (2 * sigma^2)) with sigma = half the width = 2 cells,
+# evaluated at the cell centres (u, v in cells from the keypoint).
+_CENTRES = np.arange(_N_CELLS, dtype=np.float64) - (_N_CELLS - 1) / 2
+_WINDOW = np.exp(-(_CENTRES[:, None] ** 2 + _CENTRES[None, :] ** 2) / (0.5 * _N_CELLS**2))
 
 
 def rootsift(desc: np.ndarray) -> np.ndarray:
@@ -27,6 +61,185 @@ def rootsift(desc: np.ndarray) -> np.ndarray:
     return np.sqrt(d / np.maximum(l1, _EPS)).astype(np.float32, copy=False)
 
 
+def _check_inputs(
+    image_gray: np.ndarray, xy: np.ndarray, size_px: float | np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N,2) float32 points and (N,) float64 sizes, after validating the image and sizes."""
+    if image_gray.ndim != 2 or image_gray.dtype != np.uint8:
+        raise ValueError(
+            f"image must be uint8 HxW grey, got {image_gray.dtype} of shape {image_gray.shape}"
+        )
+    pts = np.asarray(xy, dtype=np.float32).reshape(-1, 2)
+    sizes = np.broadcast_to(np.asarray(size_px, dtype=np.float64), (len(pts),))
+    if len(sizes) and not (np.isfinite(sizes).all() and (sizes > 0).all()):
+        raise ValueError("descriptor size_px must be finite and > 0")
+    return pts, sizes
+
+
+def _gradients(image_gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient magnitude and orientation in bins [0, 8] of the blurred image, both (H, W).
+
+    Gradients as OpenCV's SIFT descriptor takes them on its base layer: central differences
+    with y up (angles counter-clockwise), none on the outermost pixel ring.
+    """
+    base = cv2.GaussianBlur(image_gray.astype(np.float32), (0, 0), _BASE_SIGMA)
+    dx = cv2.Sobel(base, cv2.CV_32F, 1, 0, ksize=1)
+    dy = cv2.Sobel(base, cv2.CV_32F, 0, 1, ksize=1)
+    mag, ang = cv2.cartToPolar(dx, -dy)  # angle in [0, 2pi)
+    mag[[0, -1], :] = 0.0
+    mag[:, [0, -1]] = 0.0
+    return mag, cv2.multiply(ang, _N_ORI / (2 * np.pi))
+
+
+def _channel(mag: np.ndarray, ori: np.ndarray, c: int, out: np.ndarray) -> None:
+    """Write orientation channel c into `out` (H, W): magnitude times max(0, 1 - |ori - c|).
+
+    That is SIFT's linear interpolation of each gradient between its two nearest bins; bin 0
+    also takes angles just below 2pi.
+    """
+    dist = cv2.absdiff(ori, float(c))
+    if c == 0:
+        dist = cv2.min(dist, cv2.absdiff(ori, float(_N_ORI)))
+    weight = cv2.max(cv2.subtract(1.0, dist), 0.0)
+    cv2.multiply(weight, mag, dst=out)
+
+
+def _pyramid_level(cell_px: np.ndarray) -> np.ndarray:
+    """Per point, the level l (image shrunk by 2**l) whose pixels are <= half a cell wide.
+
+    Block-averaging the channels before pooling moves no mass by more than a block, which
+    changes a descriptor little once a cell spans 2 blocks (cosine to the full-resolution
+    descriptor >= 0.999 on fundus images), and shrinks the tables and reads 4x per level.
+    """
+    level = np.floor(np.log2(np.maximum(cell_px / _MIN_CELL_BLOCKS, 1.0)))
+    return np.minimum(level, _MAX_LEVEL).astype(np.int64)
+
+
+class _Lattice:
+    """Where one pyramid level reads its table for a set of points (shared by all channels).
+
+    Per point, a 6x6 lattice at offsets (j - 2.5) cells: cell c's centre is node c + 1, and
+    its triangle is the second difference over nodes c, c + 1, c + 2. D (the second-order
+    summed-area table, `table[y + 1, x + 1] = sum f[l, k] * max(0, y - l) * max(0, x - k)`)
+    is bilinear between pixel centres, zero above/left of the image and linear below/right
+    of it, so each node is read bilinearly from the segment [y0, y0 + 1] with y0 clamped to
+    [-1, rows - 1] (and likewise x) and extrapolated outside it, which is exact.
+    """
+
+    def __init__(self, pts: np.ndarray, cell_px: np.ndarray, level: int, shape: tuple[int, int]):
+        rows, cols = shape
+        s = float(2**level)
+        # Block i of a level covers full-resolution pixels [i*s, (i+1)*s): centre i*s + (s-1)/2.
+        centre = (pts.astype(np.float64) - (s - 1) / 2) / s
+        step = cell_px / s
+        gx = centre[:, 0:1] + _LATTICE[None, :] * step[:, None]  # (N, 6)
+        gy = centre[:, 1:2] + _LATTICE[None, :] * step[:, None]
+        x0 = np.clip(np.floor(gx), -1, cols - 1)
+        y0 = np.clip(np.floor(gy), -1, rows - 1)
+        self.fx = (gx - x0)[:, None, :]  # (N, 1, 6)
+        self.fy = (gy - y0)[:, :, None]  # (N, 6, 1)
+        self.stride = cols + 2
+        self.idx = ((y0 + 1).astype(np.int64) * self.stride)[:, :, None] + (x0 + 1).astype(
+            np.int64
+        )[:, None, :]  # (N, 6y, 6x): flat index of table[y0 + 1, x0 + 1]
+
+    def read(self, table: np.ndarray) -> np.ndarray:
+        """D at the lattice nodes, (N, 6, 6) float64."""
+        flat = table.ravel()
+        v00 = flat[self.idx]
+        v01 = flat[self.idx + 1]
+        v10 = flat[self.idx + self.stride]
+        v11 = flat[self.idx + (self.stride + 1)]
+        top = v00 + self.fx * (v01 - v00)
+        bottom = v10 + self.fx * (v11 - v10)
+        return top + self.fy * (bottom - top)
+
+
+def _cell_histograms(image_gray: np.ndarray, pts: np.ndarray, cell_px: np.ndarray) -> np.ndarray:
+    """(N, 4, 4, 8) float64 SIFT cell histograms (triangular pooling, not yet windowed).
+
+    Per orientation channel and pyramid level: the channel's second-order summed-area table
+    (two `cv2.integral` passes, float64), read at every point's lattice; the second
+    differences of the lattice are the triangle-pooled cells, exactly, for any cell width.
+    """
+    h, w = image_gray.shape
+    mag, ori = _gradients(image_gray)
+    levels = _pyramid_level(cell_px)
+    used = np.unique(levels)
+    top = int(used.max())
+    # Pad to whole blocks of the coarsest level used (zero mass), so block averages are exact.
+    block = 2**top
+    hp, wp = -(-h // block) * block, -(-w // block) * block
+    full = np.zeros((hp, wp), np.float32)
+    groups = [(lv, np.flatnonzero(levels == lv)) for lv in used.tolist()]
+    lattices = [
+        _Lattice(pts[sel], cell_px[sel], lv, (hp >> lv, wp >> lv)) for lv, sel in groups
+    ]
+    nodes = [np.empty((len(sel), 6, 6, _N_ORI)) for _, sel in groups]
+    tols: dict[int, float] = {}
+    for c in range(_N_ORI):  # 8 whole-image passes per level, not a loop over pixels or points
+        _channel(mag, ori, c, full[:h, :w])
+        level_map, level_now = full, 0
+        for (lv, _), lattice, node in zip(groups, lattices, nodes, strict=True):
+            while level_now < lv:
+                level_map = cv2.resize(
+                    level_map, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA
+                )
+                level_now += 1
+            table = cv2.integral(cv2.integral(level_map, sdepth=cv2.CV_64F), sdepth=cv2.CV_64F)
+            node[..., c] = lattice.read(table)
+            tols[lv] = max(tols.get(lv, 0.0), float(table[-1, -1]))
+    # Cells are in units of the level's table (a per-point factor the normalisation removes).
+    # Reads carry round-off of ~1e-16 of the table's range; cells below a generous multiple of
+    # it are noise (a flat region would otherwise get a normalised noise descriptor).
+    hist = np.empty((len(pts), _N_CELLS, _N_CELLS, _N_ORI))
+    for (lv, sel), node in zip(groups, nodes, strict=True):
+        rows = node[:, :-2] - 2.0 * node[:, 1:-1] + node[:, 2:]
+        cells = rows[:, :, :-2] - 2.0 * rows[:, :, 1:-1] + rows[:, :, 2:]
+        cells[cells < 64.0 * np.finfo(np.float64).eps * tols[lv]] = 0.0
+        hist[sel] = cells
+    return hist
+
+
+def _normalise(hist: np.ndarray) -> np.ndarray:
+    """SIFT's L2 normalise, clip at 0.2, renormalise; then root-SIFT. (N,128) float32."""
+    d = hist
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    d = np.minimum(d, _CLIP * norm)
+    return rootsift(d)
+
+
+def upright_rootsift(
+    image_gray: np.ndarray, xy: np.ndarray, size_px: float | np.ndarray = 10.0
+) -> np.ndarray:
+    """(N,128) float32 upright root-SIFT descriptors of uint8 HxW `image_gray` at points `xy`.
+
+    One row per input point, in input order; a point outside the image (or not finite) gets a
+    zero row, as does a point whose whole support is flat. `size_px` is the keypoint diameter
+    as OpenCV's SIFT reads it (cell width 1.5 * size_px, descriptor width 4 cells): one value,
+    or one per point. Layout and semantics are SIFT's (see the module docstring).
+    """
+    pts, sizes = _check_inputs(image_gray, xy, size_px)
+    n = len(pts)
+    out = np.zeros((n, DESCRIPTOR_DIM), dtype=np.float32)
+    if n == 0:
+        return out
+    h, w = image_gray.shape
+    inside = (
+        np.isfinite(pts).all(axis=1)
+        & (pts[:, 0] >= 0)
+        & (pts[:, 0] <= w - 1)
+        & (pts[:, 1] >= 0)
+        & (pts[:, 1] <= h - 1)
+    )
+    if not inside.any():
+        return out
+    hist = _cell_histograms(image_gray, pts[inside], _CELL_PER_SIZE * sizes[inside])
+    hist *= _WINDOW[None, :, :, None]
+    out[inside] = _normalise(hist.reshape(len(hist), DESCRIPTOR_DIM))
+    return out
+
+
 _SIFT: cv2.SIFT | None = None
 
 
@@ -37,31 +250,25 @@ def _sift() -> cv2.SIFT:
     return _SIFT
 
 
-def upright_rootsift(
+def upright_rootsift_opencv(
     image_gray: np.ndarray, xy: np.ndarray, size_px: float | np.ndarray = 10.0
 ) -> np.ndarray:
-    """(N,128) float32 upright root-SIFT descriptors of uint8 HxW `image_gray` at points `xy`.
+    """Reference: `upright_rootsift` through OpenCV's SIFT `compute` (slower, for comparison).
 
     One row per input point, in input order (OpenCV's output is re-indexed through the
     keypoints' class_id, so a dropped or re-ordered keypoint cannot shift rows; a point OpenCV
-    returns no descriptor for gets a zero row). `size_px` is the keypoint diameter given to
-    SIFT, which sets the descriptor's support region: one value, or one per point.
+    returns no descriptor for gets a zero row).
     """
-    pts = np.asarray(xy, dtype=np.float32).reshape(-1, 2)
+    pts, sizes = _check_inputs(image_gray, xy, size_px)
     n = len(pts)
     out = np.zeros((n, DESCRIPTOR_DIM), dtype=np.float32)
     if n == 0:
         return out
-    if image_gray.ndim != 2 or image_gray.dtype != np.uint8:
-        raise ValueError(
-            f"image must be uint8 HxW grey, got {image_gray.dtype} of shape {image_gray.shape}"
-        )
-    sizes = np.broadcast_to(np.asarray(size_px, dtype=np.float32), (n,)).tolist()
     # cv2.KeyPoint.convert cannot set angle=0 (it leaves -1, i.e. a 1 degree rotation), so the
     # keypoints are built here; class_id carries the input row.
     kps = [
         cv2.KeyPoint(float(x), float(y), size, 0.0, 0.0, 0, i)
-        for i, ((x, y), size) in enumerate(zip(pts.tolist(), sizes, strict=True))
+        for i, ((x, y), size) in enumerate(zip(pts.tolist(), sizes.tolist(), strict=True))
     ]
     kps_out, desc = _sift().compute(image_gray, kps)
     if desc is None or len(kps_out) == 0:

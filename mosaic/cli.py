@@ -285,15 +285,17 @@ def synth(
     size: Annotated[str, typer.Option(help="Frame size WIDTHxHEIGHT.")] = "660x350",
     seed: Annotated[int, typer.Option(help="Random seed of the trajectory.")] = 0,
     clean: Annotated[bool, typer.Option(help="No noise, blur or illumination changes.")] = False,
+    hard: Annotated[
+        bool, typer.Option(help="Hard like real video: loops, fast motion, blur bursts, glare.")
+    ] = False,
 ) -> None:
     """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json)."""
     from mosaic.io import sample_image_path
 
     _setup_logging(False)
     with _user_errors():
-        params = SynthParams(
-            n_frames=frames, size=_parse_size(size), seed=seed, nuisances=not clean
-        )
+        make = SynthParams.hard if hard else SynthParams
+        params = make(n_frames=frames, size=_parse_size(size), seed=seed, nuisances=not clean)
         gt = write_synthetic_video(image or sample_image_path(), output, params)
         typer.echo(f"video: {output}\nground truth: {gt}")
 

@@ -64,7 +64,8 @@ class RegistrationConfig:
     reproj_threshold_px: float = 3.0
     max_iters: int = 2000
     confidence: float = 0.995
-    min_inliers: int = 8  # fewer RANSAC inliers than this is a failure
+    min_inliers: int = 20  # fewer RANSAC inliers than this is a failure (a wrong placement
+    # smears the mosaic; a skipped frame costs nothing)
 
 
 @dataclass(frozen=True)

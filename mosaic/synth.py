@@ -19,6 +19,7 @@ import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,6 +51,17 @@ class SynthParams:
     blur_prob: float = 0.05  # probability that a frame is motion- or defocus-blurred
     noise_sigma: float = 3.0  # std of the additive gaussian noise, grey levels
     fps: float = 25.0
+    # Hard cases of real video (off by default; `hard()` turns them on):
+    revisit: bool = False  # the second half of the path runs back beside the first (loops)
+    fast_motion_prob: float = 0.0  # chance per frame of a burst of 3-5 steps at 4x speed
+    blur_burst_prob: float = 0.0  # chance per frame that a burst of 3-6 strongly blurred starts
+    glare_prob: float = 0.0  # chance per frame of a bright specular reflection
+
+    @classmethod
+    def hard(cls, **overrides: Any) -> SynthParams:
+        """A video hard the way real ones are: loops, fast motion, blur bursts, glare."""
+        defaults = dict(revisit=True, fast_motion_prob=0.03, blur_burst_prob=0.02, glare_prob=0.1)
+        return cls(**{**defaults, **overrides})
 
     def __post_init__(self) -> None:
         w, h = self.size
@@ -66,6 +78,14 @@ class SynthParams:
             (0 <= self.blur_prob <= 1, f"blur_prob must be in [0, 1], got {self.blur_prob}"),
             (self.noise_sigma >= 0, f"noise_sigma must be >= 0, got {self.noise_sigma}"),
             (self.fps > 0, f"fps must be > 0, got {self.fps}"),
+            *(
+                (0 <= p <= 1, f"{name} must be in [0, 1], got {p}")
+                for name, p in (
+                    ("fast_motion_prob", self.fast_motion_prob),
+                    ("blur_burst_prob", self.blur_burst_prob),
+                    ("glare_prob", self.glare_prob),
+                )
+            ),
         ]
         for ok, message in checks:
             if not ok:
@@ -190,8 +210,27 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
 
     # Centre motion in source px: frame-px speed times the frame's source-px-per-frame-px.
     steps = params.max_step_px * speed / speed.mean() if n > 1 else np.zeros(0)
+    hard_rng = np.random.default_rng(np.random.SeedSequence(params.seed).spawn(3)[2])
+    if params.fast_motion_prob > 0 and n > 1:
+        starts = np.flatnonzero(hard_rng.random(n - 1) < params.fast_motion_prob)
+        for start in starts:
+            steps[start : start + int(hard_rng.integers(3, 6))] *= 4.0
     steps = steps * base / np.sqrt(zoom[:-1] * zoom[1:]) if n > 1 else steps
-    path = _centre_path(rng, steps, r_fov - margin - reach)
+    radius = r_fov - margin - reach
+    if params.revisit and n > 3:
+        # Out along the first half of the path, back along it shifted sideways by a third of
+        # the frame height: the way back overlaps the way out only partly.
+        half = (n + 1) // 2
+        out_path = _centre_path(rng, steps[: half - 1], radius)
+        direction = np.gradient(out_path, axis=0)
+        normal = np.stack([-direction[:, 1], direction[:, 0]], 1)
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
+        offset = normal * (h / 3) * base
+        back = (out_path + offset)[::-1][: n - half]
+        path = np.concatenate([out_path, back])
+        path *= min(1.0, radius / max(np.linalg.norm(path, axis=1).max(), 1e-9))
+    else:
+        path = _centre_path(rng, steps, radius)
     H = _translation(cx, cy)[None] @ np.tile(np.eye(3), (n, 1, 1))
     H[:, :2, 2] += path
     H = H @ A
@@ -227,6 +266,16 @@ def _blur_kernel(rng: np.random.Generator) -> np.ndarray:
     return kernel / kernel.sum()
 
 
+def _add_glare(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A bright, saturating specular reflection (soft ellipse) somewhere in the frame."""
+    h, w = img.shape[:2]
+    cx, cy = rng.uniform(0.2, 0.8) * w, rng.uniform(0.2, 0.8) * h
+    ax, ay = rng.uniform(0.05, 0.15) * w, rng.uniform(0.05, 0.2) * h
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    blob = np.exp(-(((xx - cx) / ax) ** 2 + ((yy - cy) / ay) ** 2))
+    return img + float(rng.uniform(120, 255)) * blob[..., None]
+
+
 def render_frames(
     source: np.ndarray, params: SynthParams
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -237,6 +286,8 @@ def render_frames(
     rng = np.random.default_rng(np.random.SeedSequence(params.seed).spawn(2)[1])
     t = np.linspace(0.0, 1.0, params.n_frames)
     aperture = _aperture_mask(w, h)[..., None] if params.aperture else None
+    hard_rng = np.random.default_rng(np.random.SeedSequence(params.seed).spawn(4)[3])
+    burst_left = 0
     if params.nuisances:
         gain = 1.0 + 0.12 * _smooth_signal(rng, t)
         tint = 1.0 + 0.04 * np.stack([_smooth_signal(rng, t) for _ in range(3)], 1)
@@ -269,8 +320,16 @@ def render_frames(
         if aperture is not None:
             img = img * aperture + _APERTURE_LEVEL * (1.0 - aperture)
         if params.nuisances:
-            if rng.random() < params.blur_prob:
+            if burst_left == 0 and hard_rng.random() < params.blur_burst_prob:
+                burst_left = int(hard_rng.integers(3, 7))
+            if burst_left > 0:
+                burst_left -= 1
+                sigma = float(hard_rng.uniform(3.0, 6.0))
+                img = cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+            elif rng.random() < params.blur_prob:
                 img = cv2.filter2D(img, -1, _blur_kernel(rng), borderType=cv2.BORDER_REFLECT)
+            if hard_rng.random() < params.glare_prob:
+                img = _add_glare(img, hard_rng)
             if params.noise_sigma > 0:
                 img += rng.normal(0.0, params.noise_sigma, img.shape).astype(np.float32)
         yield np.clip(img + 0.5, 0, 255).astype(np.uint8), H_frame_to_source

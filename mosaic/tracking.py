@@ -188,6 +188,7 @@ class KeyframeTracker:
     MAX_CONSTRAINT_POINTS = 40  # inlier pairs kept per keyframe pair for the pose graph
     RECENT_KEYFRAMES = 2  # keyframes this close in time are neighbours, not loop closures
     LOOP_CANDIDATES = 3  # older keyframes tried per new keyframe
+    GOOD_INLIERS = 100  # a registration this strong is not compared with other keyframes
 
     def __init__(self, config: Config):
         self._config = config
@@ -237,15 +238,28 @@ class KeyframeTracker:
             return Track(np.eye(3))
         candidates = self._candidates(shape)
         first: Track | None = None
-        for attempt, kf in enumerate(candidates, start=1):
+        best: Track | None = None
+        attempts = 0
+        for kf in candidates:
+            attempts += 1
             assert kf.features is not None
             matches, registration = _register(kf.features, features, self._config, timer)
-            if registration.ok:
-                self._lost = False
-                H = kf.H_to_ref @ registration.H_cur_to_prev
-                return Track(H, registration, matches, kf.features, kf.id, attempt > 1, attempt)
-            if first is None:
-                first = Track(None, registration, matches, kf.features, kf.id)
+            if not registration.ok:
+                if first is None:
+                    first = Track(None, registration, matches, kf.features, kf.id)
+                continue
+            H = kf.H_to_ref @ registration.H_cur_to_prev
+            track = Track(H, registration, matches, kf.features, kf.id)
+            if best is None or registration.n_inliers > best.registration.n_inliers:  # type: ignore[union-attr]
+                best = track
+            # A weak registration (few inliers: small overlap, blur, glare) may be bettered by
+            # the next keyframe; a strong one is taken at once.
+            if registration.n_inliers >= self.GOOD_INLIERS:
+                break
+        if best is not None:
+            self._lost = False
+            # Relocalised: the keyframe tried first (the expected one) did not register.
+            return dataclasses.replace(best, relocalised=first is not None, attempts=attempts)
         self._lost = True
         assert first is not None
         return dataclasses.replace(first, attempts=len(candidates))
