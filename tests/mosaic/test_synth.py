@@ -209,3 +209,25 @@ def test_corner_error_and_relative_homographies():
     rel = relative_homographies(G)
     np.testing.assert_allclose(rel[0], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(rel[1], T, atol=1e-12)
+
+
+def test_hard_video_revisits_and_blurs(fundus):
+    from mosaic.synth import plan_trajectory
+
+    params = SynthParams.hard(n_frames=40, size=(200, 150), seed=4, max_step_px=10.0)
+    H = plan_trajectory(fundus, params)
+    centres = H[:, :2, 2] / H[:, 2:3, 2]
+    # Out and back: the end is much closer to the start than the turning point is.
+    turn = np.linalg.norm(centres[19] - centres[0])
+    assert turn > 40
+    assert np.linalg.norm(centres[-1] - centres[0]) < 0.5 * turn
+    blurred = SynthParams(n_frames=6, size=(200, 150), seed=4, blur_burst_prob=1.0, blur_prob=0.0)
+    sharp = SynthParams(n_frames=6, size=(200, 150), seed=4, blur_prob=0.0)
+    lap = [
+        [
+            cv2.Laplacian(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY), cv2.CV_32F).var()
+            for f, _ in render_frames(fundus, p)
+        ]
+        for p in (blurred, sharp)
+    ]
+    assert all(b < 0.5 * s for b, s in zip(lap[0], lap[1], strict=True))
