@@ -5,6 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from mosaic.synth import corner_error  # noqa: F401 (re-exported for the tests)
+
 
 def crop_pair(
     image: np.ndarray, H_b_to_a: np.ndarray, origin: tuple[int, int], size: tuple[int, int]
@@ -30,12 +32,3 @@ def similarity(
     H[0, 2] += tx
     H[1, 2] += ty
     return H
-
-
-def corner_error(H_est: np.ndarray, H_true: np.ndarray, size: tuple[int, int]) -> float:
-    """Mean distance in px between frame corners mapped by two homographies."""
-    w, h = size
-    corners = np.array([[0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1]], float).T
-    a = H_est @ corners
-    b = H_true @ corners
-    return float(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0).mean())
