@@ -216,7 +216,8 @@ class FeatureExtractor:
             return self.detector.native(prepared.gray, prepared.mask)
         keypoints, sizes = self.detector.detect(prepared.gray, prepared.mask)
         # Detectors without a scale (GLAMpoints, grid) get the configured descriptor size; large
-        # scales (ORB, BRISK pyramids) are capped: SIFT's cost grows with the square of the size.
+        # scales (ORB, BRISK pyramid levels) are capped: such wide, smooth patches match
+        # ambiguously on retina.
         size = self.config.descriptor_size_px
         sizes = np.where(sizes > 0, np.minimum(sizes, 2 * size), size).astype(np.float32)
         return Features(
