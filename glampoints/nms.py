@@ -11,6 +11,11 @@ Fully vectorised: two window-maximum passes, no loop over pixels or keypoints. T
 maximum is `max_pool2d`, or for CPU float32 maps the identical but ~100x faster `cv2.dilate`
 with a square kernel (its border reads as -FLT_MAX rather than -inf, which changes nothing
 for kept points since they must exceed the threshold).
+
+`nms_numpy` (the detector's path) gives the same points in the same order with numpy and
+OpenCV only, and skips the tie-break pass when the window maxima have pairwise distinct scores
+(then no two of them can lie in each other's window): ~0.4 ms instead of ~1.9 ms for a
+660x350 retina score map on the 2-core development machine.
 """
 
 from __future__ import annotations
@@ -91,12 +96,38 @@ def nms_numpy(
     threshold: float = 0.0,
     top_k: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Single HxW map convenience: (xy (N,2) float32, scores (N,) float32), strongest first."""
+    """Single HxW map: (xy (N,2) float32, scores (N,) float32), strongest first.
+
+    Same result as `nms` on the map (ties in raster order), computed with numpy and cv2.
+    """
     if score.ndim != 2:
         raise ValueError(f"score map must be HxW, got shape {score.shape}")
-    t = torch.from_numpy(np.ascontiguousarray(score, dtype=np.float32))[None, None]
-    xy, s = nms(t, window_px, threshold, top_k)[0]
-    return xy.numpy(), s.numpy().astype(np.float32)
+    r = _radius(window_px)
+    s = np.asarray(score, dtype=np.float32)
+    if s.strides[1] != s.itemsize:  # cv2 needs contiguous rows; a row stride is fine
+        s = np.ascontiguousarray(s)
+    h, w = s.shape
+    if r == 0:
+        cand = s > threshold
+    else:
+        kernel = np.ones((2 * r + 1, 2 * r + 1), dtype=np.uint8)
+        local_max = cv2.dilate(s, kernel, borderType=cv2.BORDER_CONSTANT)
+        cand = (s == local_max) & (s > threshold)
+    ys, xs = np.divmod(np.flatnonzero(cand), w)  # raster order (10x faster than np.nonzero)
+    vals = s[ys, xs]
+    if r > 0 and len(vals) > 1 and len(np.unique(vals)) < len(vals):
+        # Possible ties: keep, among candidates in one window, the smallest raster index.
+        dtype = np.float32 if h * w < 2**24 else np.float64
+        neg_index = np.full((h, w), -float(h * w), dtype=dtype)
+        neg_index[ys, xs] = -(ys * w + xs).astype(dtype)  # exact: h * w < 2**24 for float32
+        first = cv2.dilate(neg_index, kernel, borderType=cv2.BORDER_CONSTANT)
+        keep = neg_index[ys, xs] == first[ys, xs]
+        ys, xs, vals = ys[keep], xs[keep], vals[keep]
+    order = np.argsort(-vals, kind="stable")
+    if top_k is not None:
+        order = order[: max(int(top_k), 0)]
+    xy = np.stack([xs[order], ys[order]], axis=1).astype(np.float32)
+    return xy.reshape(-1, 2), vals[order].astype(np.float32)
 
 
 def refine_subpixel(score: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -111,8 +142,11 @@ def refine_subpixel(score: np.ndarray, xy: np.ndarray) -> np.ndarray:
     h, w = score.shape
     x = np.clip(np.rint(xy[:, 0]).astype(np.intp), 1, w - 2)
     y = np.clip(np.rint(xy[:, 1]).astype(np.intp), 1, h - 2)
-    s = np.nan_to_num(score.astype(np.float64), nan=0.0, neginf=0.0, posinf=0.0)
-    c = s[y, x]
+
+    def at(yy: np.ndarray, xx: np.ndarray) -> np.ndarray:  # gather first: no full-map copy
+        return np.nan_to_num(score[yy, xx].astype(np.float64), nan=0.0, neginf=0.0, posinf=0.0)
+
+    c = at(y, x)
 
     def vertex(minus: np.ndarray, plus: np.ndarray) -> np.ndarray:
         curvature = minus - 2.0 * c + plus
@@ -120,8 +154,8 @@ def refine_subpixel(score: np.ndarray, xy: np.ndarray) -> np.ndarray:
             offset = np.where(curvature < 0, 0.5 * (minus - plus) / curvature, 0.0)
         return np.clip(offset, -0.5, 0.5)
 
-    dx = vertex(s[y, x - 1], s[y, x + 1])
-    dy = vertex(s[y - 1, x], s[y + 1, x])
+    dx = vertex(at(y, x - 1), at(y, x + 1))
+    dy = vertex(at(y - 1, x), at(y + 1, x))
     border = (xy[:, 0] < 1) | (xy[:, 0] > w - 2) | (xy[:, 1] < 1) | (xy[:, 1] > h - 2)
     out = np.stack([x + dx, y + dy], axis=1)
     out[border] = xy[border]

@@ -1,4 +1,5 @@
-"""GlamPoints detector: BN folding, fast inference equals the network, mask, weights files."""
+"""GlamPoints detector: BN folding, fast inference equals the network, NMS fast path, mask,
+sub-pixel refinement, weights files, benchmark."""
 
 from __future__ import annotations
 
@@ -8,16 +9,20 @@ import torch
 from torch import nn
 from typer.testing import CliRunner
 
+from glampoints import detector as detector_module
 from glampoints.cli import app
 from glampoints.detector import (
     DEFAULT_WEIGHTS,
     GlamPoints,
     Keypoints,
     WeightsError,
+    benchmark,
     fold_batchnorm,
     load_weights,
+    onednn_fusion_available,
     save_weights,
 )
+from glampoints.nms import nms, nms_numpy, refine_subpixel
 from glampoints.unet import UNet
 from tests.glampoints.conftest import randomise_batchnorm, vessel_image
 
@@ -58,6 +63,77 @@ def test_score_map_equals_the_unfused_network(detector, texture):
     assert np.abs(detector.score_map(other) - _reference(detector.net, other)).max() < 1e-4
 
 
+BACKENDS = ["eager"] + (["onednn"] if onednn_fusion_available() else [])
+needs_onednn = pytest.mark.skipif(not onednn_fusion_available(), reason="no oneDNN fused ops")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("shape", [(77, 123), (123, 77), (16, 16), (5, 37), (48, 64)])
+def test_inference_paths_equal_the_plain_network_on_any_size(detector, backend, shape):
+    detector.backend = backend
+    detector.invalidate()
+    rng = np.random.default_rng(shape[0] * 1000 + shape[1])
+    image = (rng.random(shape) * 255).astype(np.uint8)
+    s = detector.score_map(image)
+    assert detector.inference_path == backend
+    assert s.shape == shape and s.dtype == np.float32
+    assert np.abs(s - _reference(detector.net, image)).max() < 1e-4
+
+
+def test_default_cpu_path_is_the_fused_one_when_available(detector, texture):
+    detector.score_map(texture)
+    assert detector.inference_path == ("onednn" if onednn_fusion_available() else "eager")
+    detector.backend = "bogus"
+    detector.invalidate()
+    with pytest.raises(ValueError, match="backend"):
+        detector.score_map(texture)
+
+
+@needs_onednn
+def test_pair_space_convolutions_equal_3x3_convolutions_with_zero_padding():
+    # even -> odd -> even pair-space chain == two 3x3 convs (+ReLU); non-zero biases make the
+    # zeroed outside pixels matter
+    torch.manual_seed(3)
+    a, b = nn.Conv2d(3, 8, 3, padding=1), nn.Conv2d(8, 8, 3, padding=1)
+    x = torch.rand(1, 3, 9, 14).contiguous(memory_format=torch.channels_last)
+    with torch.inference_mode():
+        ref = torch.relu(b(torch.relu(a(x))))
+        pa = detector_module._PairConv(a.weight, a.bias, to_odd=True)
+        pb = detector_module._PairConv(b.weight, b.bias, to_odd=False)
+        odd = pa(detector_module._pairs(x))
+        assert odd.shape == (1, 16, 9, 8)  # pixels -1 .. 14
+        out = detector_module._unpairs(pb(odd))
+    assert out.shape == ref.shape
+    assert (out - ref).abs().max().item() < 1e-5
+
+
+@needs_onednn
+@pytest.mark.parametrize("fails_at", ["build", "call"])
+def test_fused_path_falls_back_to_eager_when_onednn_fails(
+    detector, texture, monkeypatch, caplog, fails_at
+):
+    working = detector_module._OneDnnUNet.__call__
+
+    def broken(self, x):
+        if fails_at == "build" or x.shape[-1] > 48:  # the build check runs a 32x48 input
+            raise RuntimeError("could not create a primitive descriptor")
+        return working(self, x)
+
+    monkeypatch.setattr(detector_module._OneDnnUNet, "__call__", broken)
+    with caplog.at_level("WARNING", logger="glampoints.detector"):
+        s = detector.score_map(texture)
+    assert detector.inference_path == "eager"
+    assert "using eager" in caplog.text
+    assert np.abs(s - _reference(detector.net, texture)).max() < 1e-4
+    detector.invalidate()  # a failed path is not retried under "auto"
+    detector.score_map(texture)
+    assert detector.inference_path == "eager"
+    detector.backend = "onednn"  # forced: the failure is raised, not hidden
+    detector.invalidate()
+    with pytest.raises(RuntimeError, match="primitive"):
+        detector.score_map(texture)
+
+
 def test_bfloat16_precision_is_close(detector, texture):
     fast = GlamPoints(precision="bfloat16")
     fast.load_state_dict(detector.net.state_dict())
@@ -88,6 +164,60 @@ def test_detect_matches_nms_of_the_score_map_and_respects_mask(detector, texture
     capped.load_state_dict(detector.net.state_dict())
     top = capped.detect(texture, mask)
     np.testing.assert_array_equal(top.xy, masked.xy[:5])
+
+
+def test_fast_numpy_nms_equals_the_torch_reference():
+    rng = np.random.default_rng(7)
+    total = 0
+    for trial in range(120):
+        h, w = (int(v) for v in rng.integers(4, 70, 2))
+        s = rng.random((h + 2, w + 3)).astype(np.float32)[1 : 1 + h, 2 : 2 + w]  # a strided view
+        if trial % 3 == 1:
+            s = np.round(s, 1)  # plateaus and ties
+        if trial % 3 == 2:
+            s = np.where(rng.random((h, w)) < 0.4, np.float32(-np.inf), s)  # masked pixels
+        window, threshold = int(rng.integers(1, 14)), float(rng.choice([0.0, 0.25]))
+        top_k = [None, 3, 0][trial % 3]
+        ref_xy, ref_s = nms(
+            torch.from_numpy(np.ascontiguousarray(s))[None, None], window, threshold, top_k
+        )[0]
+        xy, sc = nms_numpy(s, window, threshold, top_k)
+        np.testing.assert_array_equal(xy, ref_xy.numpy())
+        np.testing.assert_array_equal(sc, ref_s.numpy())
+        assert xy.dtype == np.float32 and sc.dtype == np.float32 and xy.shape == (len(sc), 2)
+        total += len(xy)
+    assert total > 500
+
+
+def test_subpixel_refinement_recovers_the_vertex_of_a_paraboloid():
+    h, w = 40, 60
+    peaks = np.array([[10.3, 12.8], [30.0, 20.45], [47.6, 30.2]])
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    s = np.full((h, w), -1.0)
+    for px, py in peaks:  # separate paraboloids, each the max near its own peak
+        s = np.maximum(s, 1.0 - ((xx - px) ** 2 + (yy - py) ** 2) / 50.0)
+    s = s.astype(np.float32)
+    integer = np.rint(peaks).astype(np.float32)
+    refined = refine_subpixel(s, integer)
+    assert refined.dtype == np.float32
+    np.testing.assert_allclose(refined, peaks, atol=1e-3)
+    # border points stay where they are; non-finite neighbours count as 0
+    s2 = s.copy()
+    s2[12, 9] = np.nan
+    edge = np.array([[0, 5], [w - 1, 7]], np.float32)
+    np.testing.assert_array_equal(refine_subpixel(s2, edge), edge)
+    assert np.all(np.abs(refine_subpixel(s2, integer[:1]) - integer[:1]) <= 0.5)
+    assert refine_subpixel(s, np.zeros((0, 2), np.float32)).shape == (0, 2)
+
+
+def test_benchmark_reports_the_stages(detector):
+    res = benchmark(detector, shape=(64, 96), repeats=3)
+    assert res["path"] == detector.inference_path and res["precision"] == "float32"
+    assert (res["height"], res["width"], res["repeats"]) == (64.0, 96.0, 3.0)
+    for key in ("score_map_ms", "nms_ms", "refine_ms", "detect_ms", "first_call_ms"):
+        assert 0.0 < res[key] < 10_000.0, key
+    assert res["score_map_min_ms"] <= res["score_map_ms"] <= res["score_map_p90_ms"]
+    assert res["keypoints"] > 0 and res["threads"] >= 1
 
 
 def test_detect_rejects_bad_input(detector):
