@@ -90,6 +90,17 @@ def train(
     seed: Annotated[int, typer.Option()] = 0,
     batch_size: Annotated[int, typer.Option(min=1)] = 5,
     pairs_per_image: Annotated[int, typer.Option(min=1)] = 7,
+    init: Annotated[
+        Path | None,
+        typer.Option(help="start from these weights (weights file or checkpoint): fine-tuning"),
+    ] = None,
+    preprocess_crops: Annotated[
+        bool,
+        typer.Option(
+            help="the app's CLAHE + bilateral on every augmented crop (else CLAHE on "
+            "the base image only, as runs before this option)"
+        ),
+    ] = True,
     verbose: Annotated[bool, typer.Option("-v", "--verbose")] = False,
 ) -> None:
     """Train GLAMpoints on synthetic pairs from the base images (the paper's schedule)."""
@@ -107,6 +118,8 @@ def train(
         seed=seed,
         batch_size=batch_size,
         pairs_per_image=pairs_per_image,
+        preprocess_crops=preprocess_crops,
+        init=str(init) if init else "",
     )
     try:
         summary = run_training(cfg, resume=resume)

@@ -188,3 +188,21 @@ def green_clahe(image: np.ndarray, clip_limit: float = 2.0, tile_grid: int = 8) 
     grey = np.ascontiguousarray(grey, dtype=np.uint8)
     clahe = cv2.createCLAHE(clipLimit=clip_limit, tileGridSize=(tile_grid, tile_grid))
     return clahe.apply(grey)
+
+
+def frame_preprocess(
+    grey: np.ndarray,
+    clip_limit: float = 2.0,
+    tile_grid: int = 8,
+    bilateral: tuple[int, float, float] | None = (5, 25.0, 5.0),
+) -> np.ndarray:
+    """CLAHE then a bilateral filter (diameter, sigma colour, sigma space) on a grey uint8 image.
+
+    The application's per-frame pre-processing with its default settings (mosaic's
+    `[preprocess]` table), so training can show the network exactly what it sees at inference.
+    """
+    out = green_clahe(grey, clip_limit, tile_grid)
+    if bilateral is not None:
+        d, sigma_color, sigma_space = bilateral
+        out = cv2.bilateralFilter(out, d, sigma_color, sigma_space)
+    return out

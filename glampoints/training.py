@@ -13,10 +13,16 @@ Epoch size: the paper made one pair per base image per epoch from 1336 images (a
 steps of 5). We have 190 base images, so each contributes `pairs_per_image` = 7 pairs per
 epoch (1330 pairs, 266 steps): the same number of steps per epoch and in total.
 
-Pre-processing: with `preprocess=True` each base image is reduced to its green channel and
-contrast-equalised with CLAHE, as the application pre-processes frames before detection, so
-the network is trained on what it sees at inference (the app's bilateral filter is left out:
-the noise augmentation covers the noise level).
+Pre-processing: with `preprocess=True` base images are reduced to their green channel. With
+`preprocess_crops=True` (the default) every augmented crop then gets the application's own
+per-frame pre-processing (CLAHE, bilateral filter: `synthetic.frame_preprocess`), so the network
+is trained on exactly what it sees at inference, appearance changes included (CLAHE undoes part
+of a contrast change, the bilateral filter part of the noise). With `preprocess_crops=False`
+(runs before this option) CLAHE was applied once to the base image, before the appearance
+changes, and there was no bilateral filter.
+
+Fine-tuning: `init` names weights (a weights file or a training checkpoint) that a new run
+starts from instead of a random initialisation; the schedule and optimiser start afresh.
 
 Reproducibility: every random draw comes from a generator seeded by (seed, epoch, index), so a
 run resumed from a checkpoint replays the same pairs and mining; checkpoints are written
@@ -43,7 +49,7 @@ import torch
 from tqdm import tqdm
 
 from glampoints.descriptors import upright_rootsift
-from glampoints.detector import save_weights
+from glampoints.detector import WeightsError, load_weights, save_weights
 from glampoints.metrics import (
     matching_score,
     registration_class,
@@ -52,7 +58,7 @@ from glampoints.metrics import (
     true_positive_mask,
 )
 from glampoints.nms import nms
-from glampoints.synthetic import augment, fixed_pairs, green_clahe, make_pair
+from glampoints.synthetic import augment, fixed_pairs, frame_preprocess, green_clahe, make_pair
 from glampoints.unet import UNet
 
 log = logging.getLogger(__name__)
@@ -82,7 +88,9 @@ class TrainConfig:
     pairs_per_image: int = 7  # 190 images x 7 = 1330 pairs/epoch, the paper's 1336 images x 1
     seed: int = 0
     num_threads: int = 2
-    preprocess: bool = True  # green channel + CLAHE, as the app does before detection
+    preprocess: bool = True  # green channel of the base images (else plain grey)
+    preprocess_crops: bool = True  # the app's CLAHE + bilateral on every augmented crop
+    init: str = ""  # weights a new run starts from ("" = random initialisation)
     max_steps: int | None = None  # stop after this many steps in all (smoke runs)
     val_pairs_per_image: int = 4
     val_crop: int = 256
@@ -127,12 +135,16 @@ def list_images(folder: str | Path) -> list[Path]:
     return files
 
 
-def load_base_image(path: Path, preprocess: bool, max_side: int) -> np.ndarray:
-    """Grey uint8 base image: green channel + CLAHE (or plain grey), longest side <= max_side."""
+def load_base_image(path: Path, preprocess: bool, max_side: int, clahe: bool = True) -> np.ndarray:
+    """Grey uint8 base image: green channel (+ CLAHE if `clahe`) or plain grey, longest side
+    <= max_side."""
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise TrainingError(f"cannot read image {path}")
-    grey = green_clahe(img) if preprocess else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if preprocess:
+        grey = green_clahe(img) if clahe else np.ascontiguousarray(img[..., 1])
+    else:
+        grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     scale = max_side / max(grey.shape)
     if scale < 1.0:
         size = (round(grey.shape[1] * scale), round(grey.shape[0] * scale))
@@ -368,9 +380,18 @@ def config_from_dict(d: dict[str, Any]) -> TrainConfig:
     """TrainConfig from its stored dict (unknown keys ignored, tuples restored)."""
     names = {f.name for f in dataclasses.fields(TrainConfig)}
     kwargs = {k: v for k, v in d.items() if k in names}
+    kwargs.setdefault("preprocess_crops", False)  # checkpoints from before the option
     if "betas" in kwargs:
         kwargs["betas"] = tuple(kwargs["betas"])
     return TrainConfig(**kwargs)
+
+
+def _preprocess_name(cfg: dict[str, Any]) -> str:
+    if not cfg.get("preprocess", True):
+        return "grey"
+    if cfg.get("preprocess_crops", False):
+        return "green; crops: clahe+bilateral (the app's)"
+    return "green+clahe"
 
 
 def export_weights(checkpoint: str | Path, dest: str | Path) -> Path:
@@ -383,7 +404,8 @@ def export_weights(checkpoint: str | Path, dest: str | Path) -> Path:
         "trained_steps": int(ckpt.get("step", 0)),
         "git": str(ckpt.get("git", "unknown")),
         "nms_window_px": int(cfg.get("nms_window_px", 10)),
-        "preprocess": "green+clahe" if cfg.get("preprocess", True) else "grey",
+        "preprocess": _preprocess_name(cfg),
+        "init": str(cfg.get("init", "")),
         "seed": int(cfg.get("seed", 0)),
         "val": {k: float(v) for k, v in (ckpt.get("val_last") or {}).items()},
         "val_sift": {k: float(v) for k, v in (ckpt.get("val_sift") or {}).items()},
@@ -408,10 +430,38 @@ def _batch(
         k = item % cfg.pairs_per_image
         rng = np.random.default_rng([cfg.seed, 1, epoch, i, k])
         I1, I2, H = make_pair(bases[i], rng, cfg.crop)
-        I1s.append(augment(I1, rng))
-        I2s.append(augment(I2, rng))
+        I1, I2 = augment(I1, rng), augment(I2, rng)
+        if cfg.preprocess_crops:
+            I1, I2 = frame_preprocess(I1), frame_preprocess(I2)
+        I1s.append(I1)
+        I2s.append(I2)
         Hs.append(H)
     return I1s, I2s, Hs
+
+
+def _load_bases(folder: str | Path, cfg: TrainConfig) -> list[np.ndarray]:
+    clahe = not cfg.preprocess_crops  # crops get CLAHE after their appearance changes instead
+    return [
+        load_base_image(p, cfg.preprocess, cfg.max_base_side, clahe) for p in list_images(folder)
+    ]
+
+
+def validation_pairs(cfg: TrainConfig) -> list[Pair]:
+    """The fixed validation pairs of a run, pre-processed as the training crops are."""
+    pairs = fixed_pairs(
+        _load_bases(cfg.val_dir, cfg), cfg.seed + 1000, cfg.val_pairs_per_image, cfg.val_crop
+    )
+    if cfg.preprocess_crops:
+        pairs = [(frame_preprocess(a), frame_preprocess(b), H) for a, b, H in pairs]
+    return pairs
+
+
+def _initial_weights(path: str) -> dict[str, torch.Tensor]:
+    try:
+        state, _ = load_weights(path)
+    except WeightsError as exc:
+        raise TrainingError(f"--init: {exc}") from exc
+    return state
 
 
 def _select_score(val: dict[str, float]) -> tuple[float, float]:
@@ -461,11 +511,8 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
     if ckpt is not None and list(ckpt.get("files", [])) != names:
         raise TrainingError(f"the images in {cfg.data_dir} differ from the checkpoint's list")
     t0 = time.perf_counter()
-    bases = [load_base_image(p, cfg.preprocess, cfg.max_base_side) for p in files]
-    val_bases = [
-        load_base_image(p, cfg.preprocess, cfg.max_base_side) for p in list_images(cfg.val_dir)
-    ]
-    val_pairs = fixed_pairs(val_bases, cfg.seed + 1000, cfg.val_pairs_per_image, cfg.val_crop)
+    bases = _load_bases(cfg.data_dir, cfg)
+    val_pairs = validation_pairs(cfg)
     log.info(
         "%d training images, %d validation pairs (%.1f s to load)",
         len(bases),
@@ -486,6 +533,12 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
     epoch, step_in_epoch, step = 0, 0, 0
     best = (-math.inf, -math.inf)
     epoch_stats = {"loss": 0.0, "n_tp": 0.0, "n_kp": 0.0, "steps": 0, "time": 0.0}
+    if ckpt is None and cfg.init:
+        try:
+            net.load_state_dict(_initial_weights(cfg.init), strict=True)
+        except RuntimeError as exc:
+            raise TrainingError(f"--init {cfg.init} does not fit the UNet") from exc
+        log.info("initialised from %s", cfg.init)
     if ckpt is not None:
         net.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])

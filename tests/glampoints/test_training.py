@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -14,15 +15,20 @@ from typer.testing import CliRunner
 from glampoints.cli import app
 from glampoints.detector import GlamPoints
 from glampoints.nms import nms
+from glampoints.synthetic import fixed_pairs, frame_preprocess
 from glampoints.training import (
     TrainConfig,
     TrainingError,
+    config_from_dict,
     evaluate_pairs,
     export_weights,
     glampoints_loss,
+    list_images,
+    load_base_image,
     load_checkpoint,
     reward_and_mask,
     train,
+    validation_pairs,
 )
 from glampoints.unet import UNet
 from tests.glampoints.conftest import vessel_image
@@ -217,3 +223,49 @@ def test_training_errors(tmp_path, data):
     res = runner.invoke(app, ["export", str(tmp_path / "missing.pt"), "-o", str(tmp_path / "x")])
     assert res.exit_code == 2 and "checkpoint not found" in res.stderr
     assert "Traceback" not in res.output
+
+
+def test_init_starts_a_new_run_from_given_weights(tmp_path, data):
+    first = tmp_path / "first"
+    train(_cfg(data, first, max_steps=2))
+    start = load_checkpoint(first / "last.pt")["model"]
+    # lr 0: the fine-tuning run's weights stay exactly those it was initialised from (only the
+    # BatchNorm running statistics move in a training-mode forward)
+    tuned = tmp_path / "tuned"
+    train(_cfg(data, tuned, max_steps=1, lr=0.0, init=str(first / "last.pt")))
+    ckpt = load_checkpoint(tuned / "last.pt")
+    for k, _ in UNet().named_parameters():
+        torch.testing.assert_close(ckpt["model"][k], start[k], rtol=0, atol=0)
+    assert ckpt["config"]["init"] == str(first / "last.pt") and ckpt["step"] == 1
+    # a file that is not weights: one clear TrainingError, not a traceback
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(TrainingError, match="--init"):
+        train(_cfg(data, tmp_path / "x", max_steps=1, init=str(bad)))
+
+
+def test_crops_get_the_apps_preprocessing(data):
+    cfg = _cfg(data, Path("unused"))
+    pairs = validation_pairs(cfg)
+    legacy = validation_pairs(dataclasses.replace(cfg, preprocess_crops=False))
+    raw = fixed_pairs(
+        [load_base_image(p, True, cfg.max_base_side, clahe=False) for p in list_images(data[1])],
+        cfg.seed + 1000,
+        cfg.val_pairs_per_image,
+        cfg.val_crop,
+    )
+    for (a, b, H), (ra, rb, rH) in zip(pairs, raw, strict=True):
+        np.testing.assert_array_equal(H, rH)
+        np.testing.assert_array_equal(a, frame_preprocess(ra))
+        np.testing.assert_array_equal(b, frame_preprocess(rb))
+    # the legacy mode equalised the base image instead: different crops
+    firsts = zip([p[0] for p in pairs], [p[0] for p in legacy], strict=True)
+    assert any(not np.array_equal(a, la) for a, la in firsts)
+
+
+def test_checkpoints_from_before_crop_preprocessing_keep_their_mode():
+    legacy = config_from_dict(
+        {"data_dir": "a", "val_dir": "b", "out_dir": "c", "betas": [0.9, 0.99]}
+    )
+    assert legacy.preprocess_crops is False and legacy.betas == (0.9, 0.99)
+    assert TrainConfig("a", "b", "c").preprocess_crops is True

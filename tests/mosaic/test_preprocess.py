@@ -1,6 +1,7 @@
 import cv2
 import numpy as np
 
+from glampoints.synthetic import frame_preprocess
 from mosaic.config import PreprocessConfig
 from mosaic.preprocess import field_of_view_mask, prepare
 
@@ -48,3 +49,11 @@ def test_bilateral_reduces_noise():
     frame = np.dstack([noisy] * 3)
     out = prepare(frame, PreprocessConfig(clahe=False, fov_mask=False, bilateral_sigma_color=50.0))
     assert out.gray.astype(float).std() < 0.6 * noisy.astype(float).std()
+
+
+def test_training_sees_the_apps_default_preprocessing():
+    """GLAMpoints is trained on `frame_preprocess` crops: it must equal the app's defaults."""
+    rng = np.random.default_rng(3)
+    grey = cv2.GaussianBlur(rng.integers(0, 256, (120, 160), dtype=np.uint8), (0, 0), 2.0)
+    bgr = np.dstack([grey // 2, grey, grey // 3])
+    np.testing.assert_array_equal(prepare(bgr, PreprocessConfig()).gray, frame_preprocess(grey))
