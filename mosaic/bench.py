@@ -2,8 +2,9 @@
 
 A synthetic video is rendered from the shipped fundus image, then every detector processes it
 with the same settings. Per stage we report the median and p90 wall time per frame, end-to-end
-frames/s and the ratio to the SIFT pipeline; variants show what overlapping decode with
-processing (prefetch) gains and what the rerun recording costs. Ratios are what to read: the
+frames/s and the ratio to the SIFT pipeline; variants show what detecting on a smaller image
+gains, what overlapping the extraction of the next frame with the registration of the current
+one (`[pipeline] overlap`) gains, and what the rerun recording costs. Ratios are what to read: the
 machines are noisy, so only numbers from the same run are compared.
 """
 
@@ -14,7 +15,7 @@ import logging
 import resource
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ import numpy as np
 
 from mosaic.config import Config, with_overrides
 from mosaic.errors import MosaicError
-from mosaic.io import open_frames, prefetch, sample_image_path
+from mosaic.io import Frame, open_frames, sample_image_path
 from mosaic.pipeline import STAGES, MosaicBuilder
 from mosaic.synth import SynthParams, write_synthetic_video
 from mosaic.viz import Viewer
@@ -59,43 +60,51 @@ def _median_p90(values: list[float]) -> tuple[float, float]:
     return float(np.median(values)), float(np.percentile(values, 90))
 
 
-def run_variant(
-    name: str,
-    video: Path,
-    config: Config,
-    prefetch_depth: int = 2,
-    viewer: Viewer | None = None,
-) -> BenchRow:
-    """Process the whole video once and collect per-stage timings."""
+def _timed(frames: Iterable[Frame], out: list[float]) -> Iterator[Frame]:
+    """Yield the frames, appending each one's decode time (ms) to `out`."""
+    it = iter(frames)
+    while True:
+        t0 = time.perf_counter()
+        frame = next(it, None)
+        if frame is None:
+            return
+        out.append((time.perf_counter() - t0) * 1e3)
+        yield frame
+
+
+def run_variant(name: str, video: Path, config: Config, viewer: Viewer | None = None) -> BenchRow:
+    """Process the whole video once (as `mosaic build` does) and collect per-stage timings.
+
+    `frame` is the wall time between two registered frames as the caller sees them: with
+    `[pipeline] overlap` the extraction of the next frame runs meanwhile in another thread.
+    """
     builder = MosaicBuilder(config, viewer=viewer)
     decode: list[float] = []
     frame_ms: list[float] = []
     stage: dict[str, list[float]] = {s: [] for s in STAGES}
     with open_frames(video) as source:
-        frames = iter(prefetch(source, prefetch_depth))
+        records = builder.stream(_timed(source, decode))
         start = time.perf_counter()
         timed_from = start
         count = 0
         while True:
             t0 = time.perf_counter()
-            frame = next(frames, None)
-            if frame is None:
+            record = next(records, None)
+            if record is None:
                 break
             t1 = time.perf_counter()
-            record = builder.process(frame.index, frame.image, frame.error)
-            t2 = time.perf_counter()
             count += 1
             if count == WARMUP_FRAMES:
-                timed_from = t2
+                timed_from = t1
             if count <= WARMUP_FRAMES:
                 continue
-            decode.append((t1 - t0) * 1e3)
-            frame_ms.append((t2 - t0) * 1e3)
+            frame_ms.append((t1 - t0) * 1e3)
             for s in STAGES:
                 stage[s].append(record.stage_ms.get(s, 0.0))
         elapsed = time.perf_counter() - timed_from
     result = builder.finish()
     summary = result.report["summary"]
+    decode = decode[WARMUP_FRAMES:]
     stage_ms = {"decode": _median_p90(decode)} | {s: _median_p90(v) for s, v in stage.items()}
     timed = max(count - WARMUP_FRAMES, 0)
     return BenchRow(
@@ -125,8 +134,10 @@ def run_bench(
     config: Config | None = None,
     viewer_factory: Callable[[Path], Viewer] | None = None,
     progress: Callable[[str], None] = lambda _: None,
+    scales: Sequence[float] = (),
 ) -> list[BenchRow]:
-    """Every detector on one synthetic video, then the prefetch and viewer variants."""
+    """Every detector on one synthetic video, then variants of the first one: each detection
+    scale in `scales`, without overlap, and with the rerun recording."""
     config = config or Config()
     rows: list[BenchRow] = []
     with tempfile.TemporaryDirectory(prefix="mosaic-bench-") as tmp:
@@ -142,8 +153,14 @@ def run_bench(
             return rows
         base = rows[0]
         cfg = with_overrides(config, features={"detector": base.detector})
-        progress(f"{base.name} without prefetch")
-        rows.append(run_variant(f"{base.name} (no prefetch)", video, cfg, prefetch_depth=0))
+        for scale in scales:
+            progress(f"{base.name} detecting at scale {scale:g}")
+            scaled = with_overrides(cfg, features={"detect_scale": scale})
+            rows.append(run_variant(f"{base.name} (scale {scale:g})", video, scaled))
+        progress(f"{base.name} without overlap")
+        serial = with_overrides(cfg, pipeline={"overlap": not cfg.pipeline.overlap})
+        label = "no overlap" if cfg.pipeline.overlap else "overlap"
+        rows.append(run_variant(f"{base.name} ({label})", video, serial))
         if viewer_factory is not None:
             progress(f"{base.name} with --rerun save")
             rrd = Path(tmp) / "bench.rrd"

@@ -45,6 +45,7 @@ class FeaturesConfig:
     nms_window_px: int = 10  # GLAMpoints non-maximum suppression window (paper: 10)
     score_threshold: float = 0.0  # GLAMpoints minimum score of a keypoint
     descriptor_size_px: float = 10.0  # keypoint diameter given to the SIFT descriptor
+    detect_scale: float = 1.0  # detect on the frame resized by this (<= 1: faster, coarser)
     weights: str = ""  # GLAMpoints weights file; empty: the weights shipped in the package
 
 
@@ -85,6 +86,7 @@ class PipelineConfig:
     on_failure: str = "skip"  # stop (paper's protocol) | skip | restart (new mosaic segment)
     step: int = 1  # process every step-th frame
     max_frames: int = 0  # stop after this many processed frames; 0: whole video
+    overlap: bool = True  # extract frame i+1 in a background thread while frame i registers
 
 
 @dataclass(frozen=True)
@@ -142,12 +144,15 @@ POSITIVE = {
     ("features", "max_keypoints"),
     ("features", "nms_window_px"),
     ("features", "descriptor_size_px"),
+    ("features", "detect_scale"),
     ("registration", "reproj_threshold_px"),
     ("registration", "max_iters"),
     ("compose", "max_canvas_px"),
     ("pipeline", "step"),
     ("keyframes", "max_keyframes"),
 }
+
+AT_MOST_ONE = {("features", "detect_scale")}
 
 
 def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
@@ -163,6 +168,8 @@ def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
         raise ConfigError(f"config {where} must be one of {', '.join(choices)}, got {value!r}")
     if (table, key) in POSITIVE and value <= 0:
         raise ConfigError(f"config {where} must be > 0, got {value!r}")
+    if (table, key) in AT_MOST_ONE and value > 1:
+        raise ConfigError(f"config {where} must be <= 1, got {value!r}")
     if isinstance(value, int | float) and not isinstance(value, bool) and value < 0:
         raise ConfigError(f"config {where} must be >= 0, got {value!r}")
     return value

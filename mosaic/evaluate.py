@@ -679,19 +679,18 @@ def evaluate_video(
     """
     config = with_overrides(config, pipeline={"on_failure": "skip"})
     builder = MosaicBuilder(config, extractor=extractor)
-    size: tuple[int, int] | None = None
     with open_frames(path, config.pipeline.step, config.pipeline.max_frames) as source:
-        for frame in tqdm(
+        frames = tqdm(
             source,
             total=source.expected_frames,
             unit="frame",
             desc=f"{extractor.detector.name} {path.name}",
             disable=not progress,
             leave=False,
-        ):
-            if frame.image is not None and size is None:
-                size = (frame.image.shape[1], frame.image.shape[0])
-            builder.process(frame.index, frame.image, frame.error)
+        )
+        for _ in builder.stream(frames):
+            pass
+        size = (source.info.width, source.info.height)
     reread = _reread(path, config.pipeline.step, config.pipeline.max_frames)
     report = builder.finish(reread=reread).report  # refined poses, as `mosaic build` reports
     frames, summary = report["frames"], report["summary"]

@@ -214,7 +214,7 @@ class FeatureExtractor:
         """Keypoints of a frame; with native descriptors they come described already."""
         if self.config.descriptor == "native":
             return self.detector.native(prepared.gray, prepared.mask)
-        keypoints, sizes = self.detector.detect(prepared.gray, prepared.mask)
+        keypoints, sizes = self._detect_scaled(prepared)
         # Detectors without a scale (GLAMpoints, grid) get the configured descriptor size; large
         # scales (ORB, BRISK pyramid levels) are capped: such wide, smooth patches match
         # ambiguously on retina.
@@ -223,6 +223,33 @@ class FeatureExtractor:
         return Features(
             keypoints.xy, keypoints.scores, sizes, np.zeros((len(sizes), 0), np.float32)
         )
+
+    def _detect_scaled(self, prepared: Prepared) -> tuple[Keypoints, np.ndarray]:
+        """Detect on the frame resized by `detect_scale`; points and sizes in frame pixels.
+
+        Descriptors are still computed on the full-resolution frame: only the detector (for
+        GLAMpoints the network, ~s^2 of the cost) sees the smaller image.
+        """
+        s = self.config.detect_scale
+        if s == 1.0:
+            return self.detector.detect(prepared.gray, prepared.mask)
+        h, w = prepared.gray.shape
+        size = (max(round(w * s), 16), max(round(h * s), 16))
+        gray = cv2.resize(prepared.gray, size, interpolation=cv2.INTER_AREA)
+        mask = cv2.resize(prepared.mask, size, interpolation=cv2.INTER_NEAREST)
+        keypoints, sizes = self.detector.detect(gray, mask)
+        sx, sy = w / size[0], h / size[1]
+        # pixel centres: x_full = (x_small + 0.5) * sx - 0.5
+        xy = ((keypoints.xy + 0.5) * np.array([sx, sy], np.float32) - 0.5).astype(np.float32)
+        inside = (xy[:, 0] <= w - 1) & (xy[:, 1] <= h - 1) & (xy >= 0).all(axis=1)
+        inside &= (
+            prepared.mask[
+                np.round(xy[:, 1]).astype(int).clip(0, h - 1),
+                np.round(xy[:, 0]).astype(int).clip(0, w - 1),
+            ]
+            > 0
+        )
+        return Keypoints(xy[inside], keypoints.scores[inside]), sizes[inside] * np.float32(sx)
 
     def describe(self, prepared: Prepared, detected: Features) -> Features:
         """Attach upright root-SIFT descriptors to detected keypoints (no-op when native)."""

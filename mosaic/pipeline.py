@@ -3,15 +3,19 @@ track (match → estimate → check, against the previous frame or the keyframes
 accounted for in the report; at the end the keyframe poses are refined and the mosaic rendered.
 
 `MosaicBuilder.process` takes one decoded frame at a time (frames are streamed, never stored);
-`MosaicBuilder.finish` renders the mosaic segment(s) and the report. Reading files, progress bars
-and the viewer stay outside: the viewer is injected and is a no-op unless the user turns it on.
+it is `extract` (preprocess → describe: needs no other frame) then `register` (track → compose,
+in frame order). `stream` runs them over a video with, when `[pipeline] overlap` is on, the
+extraction of the next frames in a background thread while the current one is registered
+(OpenCV and torch release the GIL). `MosaicBuilder.finish` renders the mosaic segment(s) and the
+report. Reading files, progress bars and the viewer stay outside: the viewer is injected and is
+a no-op unless the user turns it on.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -21,6 +25,7 @@ from mosaic.compose import Canvas
 from mosaic.config import Config, config_to_dict
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features
+from mosaic.io import Frame, prefetch
 from mosaic.matching import Matches, match_descriptors
 from mosaic.preprocess import FrameGate, Prepared, prepare
 from mosaic.registration import Registration, estimate_homography
@@ -65,6 +70,17 @@ class FrameEvent:
     registration: Registration | None
     canvas: Canvas | None
     reference: Features | None = None  # what the frame was matched against (matches.idx_a)
+
+
+@dataclass(frozen=True)
+class Extracted:
+    """A frame after the stages that need no other frame; `skip` says why it goes no further."""
+
+    record: FrameRecord
+    image: np.ndarray | None
+    prepared: Prepared | None = None
+    features: Features | None = None
+    skip: str | None = None
 
 
 @dataclass(frozen=True)
@@ -151,21 +167,44 @@ class MosaicBuilder:
         self, index: int, image: np.ndarray | None, error: str | None = None
     ) -> FrameRecord:
         """Register and compose one frame; undecodable or unusable frames are skipped."""
+        return self.register(self.extract(index, image, error))
+
+    def stream(self, frames: Iterable[Frame]) -> Iterator[FrameRecord]:
+        """`process` every frame in order, extracting ahead in a background thread if
+        `[pipeline] overlap`; stop iterating to stop (the thread is stopped too)."""
+        extracted = (self.extract(f.index, f.image, f.error) for f in frames)
+        if self.config.pipeline.overlap:
+            extracted = prefetch(extracted, depth=2)
+        for item in extracted:
+            yield self.register(item)
+
+    def extract(self, index: int, image: np.ndarray | None, error: str | None = None) -> Extracted:
+        """Preprocess, gate, detect and describe one frame (independent of other frames but
+        for the gate's recent history, so frames must come in order)."""
         record = FrameRecord(index=index)
-        self.records.append(record)
         if image is None:
-            return self._skip(record, error or "frame could not be decoded")
+            return Extracted(record, None, skip=error or "frame could not be decoded")
         timer = _Timer(record)
         prepared = timer.run("preprocess", prepare, image, self.config.preprocess)
         gate_reason = self._gate(prepared)
         if gate_reason is not None:
-            return self._skip(record, gate_reason, image, prepared)
+            return Extracted(record, image, prepared, skip=gate_reason)
         detected = timer.run("detect", self.extractor.detect, prepared)
         features = timer.run("describe", self.extractor.describe, prepared, detected)
         record.n_keypoints = len(features)
+        return Extracted(record, image, prepared, features)
 
+    def register(self, extracted: Extracted) -> FrameRecord:
+        """Track and compose an extracted frame (frames in order), report it to the viewer."""
+        record, image, prepared = extracted.record, extracted.image, extracted.prepared
+        self.records.append(record)
+        if extracted.skip is not None or extracted.features is None:
+            return self._skip(record, extracted.skip or "no features", image, prepared)
+        assert image is not None and prepared is not None
+        features = extracted.features
+        timer = _Timer(record)
         segment = self._segment or self._new_segment()
-        track = segment.tracker.track(index, features, prepared.gray.shape, timer)
+        track = segment.tracker.track(record.index, features, prepared.gray.shape, timer)
         if track.registration is not None:
             record.n_matches = track.registration.n_matches
             record.n_inliers = track.registration.n_inliers

@@ -79,3 +79,30 @@ def test_register_pair_recovers_the_known_homography(pair, name, descriptor, max
     assert reg.ok, reg.reason
     assert reg.n_inliers >= 20
     assert corner_error(reg.H_cur_to_prev, H_b_to_a, (480, 320)) < max_error_px
+
+
+def test_detect_scale_maps_points_back_to_frame_pixels():
+    """Blobs at known places: found at half resolution, reported at full-resolution positions."""
+    import cv2
+
+    rng = np.random.default_rng(4)
+    centres = np.stack([rng.uniform(30, 370, 40), rng.uniform(30, 270, 40)], 1).astype(np.float32)
+    image = np.full((300, 400), 40, np.uint8)
+    for x, y in centres:
+        cv2.circle(image, (round(float(x) * 16), round(float(y) * 16)), 5 * 16, 220, -1, shift=4)
+    image = cv2.GaussianBlur(image, (0, 0), 2.0)
+    prepared = prepare(np.dstack([image] * 3), Config().preprocess)
+    prepared.mask[:, 300:] = 0  # the mask is honoured at full resolution
+    full = FeatureExtractor(FeaturesConfig(detector="sift")).detect(prepared)
+    half = FeatureExtractor(FeaturesConfig(detector="sift", detect_scale=0.5)).detect(prepared)
+    assert half.xy[:, 0].max() < 300
+    inside = centres[centres[:, 0] < 290]
+    for features, tol in ((full, 1.0), (half, 1.5)):
+        d = np.linalg.norm(inside[:, None] - features.xy[None], axis=2).min(axis=1)
+        assert np.median(d) < tol, np.sort(d)
+
+    # sizes are in frame pixels too: the same blobs have about the same diameter
+    def sizes_at_blobs(f):
+        return f.sizes[np.linalg.norm(f.xy[:, None] - inside[None], axis=2).min(axis=1) < 2]
+
+    assert 0.7 < np.median(sizes_at_blobs(half)) / np.median(sizes_at_blobs(full)) < 1.4

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mosaic.config import Config, with_overrides
-from mosaic.io import open_frames
+from mosaic.io import Frame, open_frames
 from mosaic.pipeline import MosaicBuilder
 from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
@@ -132,3 +132,56 @@ def test_corrupt_frame_is_skipped_and_counted(video):
     assert summary["skipped"] == 1 and summary["registered"] == 23
     assert summary["frames_until_failure"] == 23
     assert result.report["frames"][4]["reason"] == "corrupt frame"
+
+
+@pytest.mark.parametrize("on_failure", ["skip", "stop"])
+def test_overlapped_stream_gives_the_serial_result(video, on_failure):
+    """Extracting frame i+1 in a background thread must not change a single number."""
+    folder, _ = video
+    results = {}
+    for overlap in (False, True):
+        builder = MosaicBuilder(_config(on_failure=on_failure, overlap=overlap))
+        with open_frames(folder) as frames:
+
+            def damaged(frames=frames):
+                for frame in frames:  # frame 9 unregistrable: flat noise
+                    if frame.index == 9:
+                        rng = np.random.default_rng(9)
+                        frame = Frame(9, rng.integers(0, 255, frame.image.shape, np.uint8))
+                    yield frame
+
+            for _ in builder.stream(damaged()):
+                if builder.stopped:
+                    break
+        results[overlap] = builder.finish().report
+    serial, overlapped = results[False], results[True]
+    assert (
+        len(overlapped["frames"]) == len(serial["frames"]) == (24 if on_failure == "skip" else 10)
+    )
+    for a, b in zip(serial["frames"], overlapped["frames"], strict=True):
+        assert (a["index"], a["status"], a["n_keypoints"], a["n_inliers"]) == (
+            b["index"],
+            b["status"],
+            b["n_keypoints"],
+            b["n_inliers"],
+        )
+        if a["H_to_canvas"] is not None:
+            np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
+    assert overlapped["frames"][9]["status"] == "failed"
+
+
+def test_detecting_at_half_scale_still_follows_the_ground_truth(video):
+    folder, gt = video
+    result = _run(folder, with_overrides(_config(), features={"detect_scale": 0.5}))
+    frames = result.report["frames"]
+    assert result.report["summary"]["registered"] == 24
+    H0 = np.array(frames[0]["H_to_canvas"])
+    errors = [
+        corner_error(
+            np.linalg.inv(H0) @ np.array(e["H_to_canvas"]),
+            np.linalg.inv(gt[0]) @ gt[e["index"]],
+            SIZE,
+        )
+        for e in frames[1:]
+    ]
+    assert np.mean(errors) < 4.0, errors

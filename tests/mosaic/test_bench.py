@@ -1,0 +1,52 @@
+"""`mosaic bench`: variants in one run, every frame accounted for, table and JSON output."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from mosaic.bench import format_table, run_bench
+from mosaic.cli import app
+
+
+def test_bench_runs_every_variant_on_the_same_video():
+    rows = run_bench(["sift"], size=(400, 280), n_frames=14, scales=[0.75, 0.5])
+    names = [r.name for r in rows]
+    assert names == ["sift", "sift (scale 0.75)", "sift (scale 0.5)", "sift (no overlap)"]
+    for r in rows:
+        assert r.frames == 14
+        assert r.registered >= 13, r  # an easy synthetic video: (almost) everything registers
+        assert r.fps > 0 and r.frame_ms[0] <= r.frame_ms[1]  # median <= p90
+        assert r.stage_ms["detect"][0] > 0 and r.stage_ms["compose"][0] > 0
+    table = format_table(rows).splitlines()
+    assert table[0].split()[:3] == ["variant", "decode", "preprocess"]
+    assert len(table) == 1 + len(rows)
+    sift_line = table[1].split()
+    assert sift_line[0] == "sift" and sift_line[-3] == "1.00"  # the reference's own ratio
+
+
+def test_bench_cli_json_and_bad_scales():
+    runner = CliRunner()
+    res = runner.invoke(
+        app,
+        [
+            "bench",
+            "--size",
+            "200x140",
+            "--frames",
+            "12",
+            "--detector",
+            "sift",
+            "--scales",
+            "0.5",
+            "--no-rerun",
+            "--json",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.stdout)
+    assert [r["name"] for r in data["rows"]] == ["sift", "sift (scale 0.5)", "sift (no overlap)"]
+    assert data["environment"]["cpu_count"] >= 1
+    res = runner.invoke(app, ["bench", "--scales", "2", "--no-rerun"])
+    assert res.exit_code == 2 and "--scales" in res.stderr and "Traceback" not in res.output
