@@ -172,6 +172,33 @@ def run_bench(
     return rows
 
 
+def profile_pipeline(
+    detector: str,
+    size: tuple[int, int] = (660, 350),
+    n_frames: int = 60,
+    config: Config | None = None,
+    top: int = 20,
+) -> str:
+    """cProfile of a serial run (`overlap` off, so every stage runs in the profiled thread):
+    the `top` functions by own time, as pstats prints them."""
+    import cProfile
+    import io
+    import pstats
+
+    cfg = with_overrides(config or Config(), features={"detector": detector})
+    cfg = with_overrides(cfg, pipeline={"overlap": False})
+    with tempfile.TemporaryDirectory(prefix="mosaic-profile-") as tmp:
+        video = make_video(Path(tmp), size, n_frames)
+        profiler = cProfile.Profile()
+        profiler.enable()
+        run_variant(detector, video, cfg)
+        profiler.disable()
+    out = io.StringIO()
+    stats = pstats.Stats(profiler, stream=out).strip_dirs().sort_stats("tottime")
+    stats.print_stats(top)
+    return out.getvalue()
+
+
 def format_table(rows: list[BenchRow], reference: str = "sift") -> str:
     """Rows = variants; columns = median ms per stage, frame median/p90, fps, ratio to SIFT."""
     ref = next((r for r in rows if r.name == reference), None)

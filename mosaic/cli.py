@@ -427,9 +427,16 @@ def bench(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print JSON instead of the table.")
     ] = False,
+    profile: Annotated[
+        int,
+        typer.Option(
+            help="Also print a cProfile of the first detector (serial run): the N functions "
+            "with the most own time (0: none)."
+        ),
+    ] = 0,
 ) -> None:
     """Time the whole pipeline per detector on a synthetic video (ms per stage, frames/s)."""
-    from mosaic.bench import environment, format_table, run_bench
+    from mosaic.bench import environment, format_table, profile_pipeline, run_bench
 
     _setup_logging(False)
     with _user_errors():
@@ -471,6 +478,9 @@ def bench(
             f"x sift = fps ratio. {'; '.join(notes)}"
         )
         typer.echo("environment: " + ", ".join(f"{k}={v}" for k, v in env.items()))
+        if profile:
+            typer.echo(f"\nprofile of {names[0]} (serial run, {frames} frames):")
+            typer.echo(profile_pipeline(names[0], _parse_size(size), frames, config, profile))
 
 
 def main() -> None:

@@ -6,7 +6,7 @@ import json
 
 from typer.testing import CliRunner
 
-from mosaic.bench import format_table, run_bench
+from mosaic.bench import format_table, profile_pipeline, run_bench
 from mosaic.cli import app
 
 
@@ -50,3 +50,11 @@ def test_bench_cli_json_and_bad_scales():
     assert data["environment"]["cpu_count"] >= 1
     res = runner.invoke(app, ["bench", "--scales", "2", "--no-rerun"])
     assert res.exit_code == 2 and "--scales" in res.stderr and "Traceback" not in res.output
+
+
+def test_profile_names_the_pipeline_stages():
+    text = profile_pipeline("sift", size=(240, 180), n_frames=10, top=40)
+    assert "tottime" in text
+    # the hot functions of a SIFT frame are there: detection, description, matching, RANSAC
+    for name in ("detect", "_cell_histograms", "distance_matrix", "findHomography"):
+        assert name in text, text
