@@ -245,7 +245,7 @@ def test_init_starts_a_new_run_from_given_weights(tmp_path, data):
 
 
 def test_crops_get_the_apps_preprocessing(data):
-    cfg = _cfg(data, Path("unused"))
+    cfg = _cfg(data, Path("unused"), preprocess_crops=True)
     pairs = validation_pairs(cfg)
     legacy = validation_pairs(dataclasses.replace(cfg, preprocess_crops=False))
     raw = fixed_pairs(
@@ -258,14 +258,11 @@ def test_crops_get_the_apps_preprocessing(data):
         np.testing.assert_array_equal(H, rH)
         np.testing.assert_array_equal(a, frame_preprocess(ra))
         np.testing.assert_array_equal(b, frame_preprocess(rb))
-    # the legacy mode equalised the base image instead: different crops
+    # the default mode equalises the base image instead: different crops
     firsts = zip([p[0] for p in pairs], [p[0] for p in legacy], strict=True)
     assert any(not np.array_equal(a, la) for a, la in firsts)
 
 
 def test_checkpoints_from_before_crop_preprocessing_keep_their_mode():
-    legacy = config_from_dict(
-        {"data_dir": "a", "val_dir": "b", "out_dir": "c", "betas": [0.9, 0.99]}
-    )
-    assert legacy.preprocess_crops is False and legacy.betas == (0.9, 0.99)
-    assert TrainConfig("a", "b", "c").preprocess_crops is True
+    old = config_from_dict({"data_dir": "a", "val_dir": "b", "out_dir": "c", "betas": [0.9, 0.99]})
+    assert old.preprocess_crops is False and old.init == "" and old.betas == (0.9, 0.99)
