@@ -60,6 +60,13 @@ def _median_p90(values: list[float]) -> tuple[float, float]:
     return float(np.median(values)), float(np.percentile(values, 90))
 
 
+def cuda_available() -> bool:
+    """Whether torch sees a CUDA GPU (then the bench adds a GPU row for GLAMpoints)."""
+    import torch
+
+    return bool(torch.cuda.is_available())
+
+
 def _timed(frames: Iterable[Frame], out: list[float]) -> Iterator[Frame]:
     """Yield the frames, appending each one's decode time (ms) to `out`."""
     it = iter(frames)
@@ -136,8 +143,9 @@ def run_bench(
     progress: Callable[[str], None] = lambda _: None,
     scales: Sequence[float] = (),
 ) -> list[BenchRow]:
-    """Every detector on one synthetic video, then variants of the first one: each detection
-    scale in `scales`, without overlap, and with the rerun recording."""
+    """Every detector on one synthetic video, then variants of the first one: GLAMpoints on the
+    GPU (where CUDA is available), each detection scale in `scales`, without overlap, and with
+    the rerun recording."""
     config = config or Config()
     rows: list[BenchRow] = []
     with tempfile.TemporaryDirectory(prefix="mosaic-bench-") as tmp:
@@ -153,6 +161,10 @@ def run_bench(
             return rows
         base = rows[0]
         cfg = with_overrides(config, features={"detector": base.detector})
+        if base.detector == "glampoints" and cuda_available():
+            progress(f"{base.name} on the GPU")
+            gpu = with_overrides(cfg, features={"device": "cuda"})
+            rows.append(run_variant(f"{base.name} (cuda)", video, gpu))
         for scale in scales:
             progress(f"{base.name} detecting at scale {scale:g}")
             scaled = with_overrides(cfg, features={"detect_scale": scale})

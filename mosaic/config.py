@@ -47,6 +47,7 @@ class FeaturesConfig:
     descriptor_size_px: float = 10.0  # keypoint diameter given to the SIFT descriptor
     detect_scale: float = 1.0  # detect on the frame resized by this (<= 1: faster, coarser)
     weights: str = ""  # GLAMpoints weights file; empty: the weights shipped in the package
+    device: str = "cpu"  # where GLAMpoints runs its network: cpu | cuda (a CUDA GPU if present)
 
 
 @dataclass(frozen=True)
@@ -127,6 +128,7 @@ class Config:
 
 CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
     ("features", "descriptor"): ("rootsift", "native"),
+    ("features", "device"): ("cpu", "cuda"),
     ("registration", "method"): (
         "ransac",
         "usac_default",

@@ -144,13 +144,20 @@ class GlamPointsDetector:
     name = "glampoints"
 
     def __init__(self, config: FeaturesConfig):
+        import torch
+
         from glampoints.detector import GlamPoints
 
+        if config.device == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(
+                '[features] device = "cuda" but this torch build sees no CUDA GPU; use "cpu"'
+            )
         self._model = GlamPoints.from_pretrained(
             config.weights or None,
             nms_window_px=config.nms_window_px,
             score_threshold=config.score_threshold,
             max_keypoints=config.max_keypoints,
+            device=config.device,
         )
 
     def detect(self, gray: np.ndarray, mask: np.ndarray) -> tuple[Keypoints, np.ndarray]:

@@ -106,3 +106,12 @@ def test_detect_scale_maps_points_back_to_frame_pixels():
         return f.sizes[np.linalg.norm(f.xy[:, None] - inside[None], axis=2).min(axis=1) < 2]
 
     assert 0.7 < np.median(sizes_at_blobs(half)) / np.median(sizes_at_blobs(full)) < 1.4
+
+
+def test_glampoints_on_a_missing_gpu_is_a_clear_config_error():
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    with pytest.raises(ConfigError, match='device = "cuda"'):
+        FeatureExtractor(FeaturesConfig(detector="glampoints", device="cuda"))
