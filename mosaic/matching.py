@@ -25,16 +25,26 @@ class Matches:
         return len(self.idx_a)
 
 
-def distance_matrix(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
-    """(Na, Nb) distances: L2 for float descriptors, Hamming for packed binary ones."""
+def squared_distance_matrix(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
+    """(Na, Nb) squared L2 distances for float descriptors; Hamming distances (not squared)
+    for packed binary ones. Either way, smaller is closer: nearest neighbours need no sqrt."""
     if desc_a.dtype == np.uint8:
         a = np.unpackbits(desc_a, axis=1).astype(np.float32)
         b = np.unpackbits(desc_b, axis=1).astype(np.float32)
         return a.sum(1)[:, None] + b.sum(1)[None, :] - 2.0 * (a @ b.T)
     a = desc_a.astype(np.float32, copy=False)
     b = desc_b.astype(np.float32, copy=False)
-    sq = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)
-    return np.sqrt(np.maximum(sq, 0.0))
+    sq = a @ b.T
+    sq *= -2.0
+    sq += (a * a).sum(1)[:, None]
+    sq += (b * b).sum(1)[None, :]
+    return sq
+
+
+def distance_matrix(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
+    """(Na, Nb) distances: L2 for float descriptors, Hamming for packed binary ones."""
+    d = squared_distance_matrix(desc_a, desc_b)
+    return d if desc_a.dtype == np.uint8 else np.sqrt(np.maximum(d, 0.0))
 
 
 def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, config: MatchingConfig) -> Matches:
@@ -42,7 +52,8 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, config: MatchingCo
     if len(desc_a) == 0 or len(desc_b) == 0:
         empty = np.zeros(0, np.intp)
         return Matches(empty, empty, np.zeros(0, np.float32))
-    d = distance_matrix(desc_a, desc_b)
+    binary = desc_a.dtype == np.uint8
+    d = squared_distance_matrix(desc_a, desc_b)  # sqrt only for the kept matches
     idx_a = np.arange(len(desc_a))
     idx_b = d.argmin(axis=1)
     best = d[idx_a, idx_b]
@@ -51,5 +62,7 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, config: MatchingCo
         keep &= d.argmin(axis=0)[idx_b] == idx_a
     if config.ratio < 1.0 and d.shape[1] >= 2:
         second = np.partition(d, 1, axis=1)[:, 1]
-        keep &= best < config.ratio * second
-    return Matches(idx_a[keep], idx_b[keep], best[keep].astype(np.float32))
+        ratio = config.ratio if binary else config.ratio**2  # squared distances compare squared
+        keep &= best < ratio * second
+    best = best[keep] if binary else np.sqrt(np.maximum(best[keep], 0.0))
+    return Matches(idx_a[keep], idx_b[keep], best.astype(np.float32))

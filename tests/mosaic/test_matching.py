@@ -49,3 +49,25 @@ def test_empty_inputs():
         np.zeros((0, 128), np.float32), np.ones((3, 128), np.float32), MatchingConfig()
     )
     assert len(m) == 0
+
+
+def test_matches_equal_a_brute_force_on_true_distances():
+    """Squared distances inside must not change a match, a ratio decision or a distance."""
+    rng = np.random.default_rng(5)
+    a = rng.random((300, 32)).astype(np.float32)
+    b = np.concatenate([a[:200] + rng.normal(0, 0.05, (200, 32)), rng.random((150, 32))])
+    b = b.astype(np.float32)
+    direct = np.linalg.norm(a[:, None].astype(np.float64) - b[None], axis=2)
+    nn = direct.argmin(axis=1)
+    second = np.sort(direct, axis=1)[:, 1]
+    best = direct[np.arange(300), nn]
+    for cfg in (MatchingConfig(), MatchingConfig(cross_check=False, ratio=0.8)):
+        m = match_descriptors(a, b, cfg)
+        keep = np.ones(300, bool)
+        if cfg.cross_check:
+            keep &= direct.argmin(axis=0)[nn] == np.arange(300)
+        if cfg.ratio < 1:
+            keep &= best < cfg.ratio * second
+        np.testing.assert_array_equal(m.idx_a, np.flatnonzero(keep))
+        np.testing.assert_array_equal(m.idx_b, nn[keep])
+        np.testing.assert_allclose(m.distance, best[keep], atol=1e-4)
