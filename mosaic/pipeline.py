@@ -328,8 +328,9 @@ class MosaicBuilder:
             if s.canvas.n_frames
         ]
         report = build_report(self, mosaics, interrupted)
-        self.viewer.finish(report)
-        return MosaicResult(mosaics, report)
+        result = MosaicResult(mosaics, report)
+        self.viewer.finish(report, result.main.image if result.main is not None else None)
+        return result
 
 
 def _leading_run(statuses: list[str]) -> int:

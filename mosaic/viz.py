@@ -19,6 +19,9 @@ Recording layout (timeline `frame`, sequence = frame index in the video):
     log/python/...               Python `logging` records of the `mosaic` loggers
     run/config, run/video        static: the run's config (TOML) and the input's metadata
     run/report                   static, at the end: the report summary
+    final/mosaic                 static, at the end: the written main mosaic (after pose-graph
+                                 refinement and re-rendering), JPEG, downscaled to
+                                 `canvas_max_side`
 
 Coordinates: the pipeline uses OpenCV's convention (pixel centres at integers), rerun draws
 pixel (u, v) over [u, u + 1) x [v, v + 1); points are shifted by half a pixel before scaling.
@@ -84,8 +87,8 @@ class Viewer(Protocol):
         """One frame was processed (registered, failed or skipped)."""
         ...
 
-    def finish(self, report: dict[str, Any]) -> None:
-        """The run ended; `report` is the final report."""
+    def finish(self, report: dict[str, Any], mosaic: np.ndarray | None = None) -> None:
+        """The run ended; `report` is the final report, `mosaic` the written main mosaic."""
         ...
 
 
@@ -95,7 +98,7 @@ class NullViewer:
     def frame(self, event: FrameEvent) -> None:
         pass
 
-    def finish(self, report: dict[str, Any]) -> None:
+    def finish(self, report: dict[str, Any], mosaic: np.ndarray | None = None) -> None:
         pass
 
 
@@ -405,8 +408,9 @@ class RerunViewer:
 
     # ------------------------------------------------------------------------------ end
 
-    def finish(self, report: dict[str, Any]) -> None:
-        """Log the final canvas snapshot and the report, then `close`."""
+    def finish(self, report: dict[str, Any], mosaic: np.ndarray | None = None) -> None:
+        """Log the final canvas snapshot, the written mosaic (after refinement and
+        re-rendering, it can differ from the live canvas) and the report, then `close`."""
         if self._finished:
             return
         rr, rec = self._rr, self._rec
@@ -419,6 +423,13 @@ class RerunViewer:
                 if self._last_H_frame_to_ref is not None:
                     self._log_outline()
         self._last_canvas = None
+        if mosaic is not None and mosaic.size:
+            jpeg, _ = encode_jpeg(mosaic, fit_scale(mosaic.shape, self.canvas_max_side), 90)
+            rec.log(
+                "final/mosaic",
+                rr.EncodedImage(contents=jpeg, media_type="image/jpeg"),
+                static=True,
+            )
         summary = report.get("summary", {})
         text = "# Run report\n\n" + _markdown_table(summary)
         if report.get("segments"):
@@ -508,7 +519,10 @@ def make_blueprint() -> Any:
                 row_shares=[3, 2],
             ),
             rrb.Vertical(
-                rrb.Spatial2DView(origin="mosaic", name="mosaic"),
+                rrb.Tabs(
+                    rrb.Spatial2DView(origin="mosaic", name="mosaic"),
+                    rrb.Spatial2DView(origin="final", name="final mosaic"),
+                ),
                 rrb.Tabs(
                     rrb.TextLogView(origin="log", name="log"),
                     rrb.TextDocumentView(origin="run/report", name="report"),

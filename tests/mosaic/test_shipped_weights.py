@@ -30,10 +30,11 @@ VAL = SHARED_DATA / "retina" / "val" / "lmc"
     "app's SIFT (low contrast threshold, 1000 points) 63.9 %; passes once trained weights do",
 )
 def test_glampoints_registers_at_least_as_many_pairs_as_sift(tmp_path):
-    dataset = load_synthetic(VAL, seed=0, pairs_per_image=2)
+    # 10 pairs per image (180 pairs): fewer, and one pair moves the verdict by several points
+    dataset = load_synthetic(VAL, seed=0, pairs_per_image=10)
     _, summary = run_pair_evaluation(dataset, Config(), ["glampoints", "sift"], tmp_path / "out")
     by_name = {row["detector"]: row for row in summary}
     glam, sift = by_name["glampoints"], by_name["sift"]
-    assert glam["pairs"] == sift["pairs"] >= 24
+    assert glam["pairs"] == sift["pairs"] >= 100
     assert glam["acceptable_pct"] >= sift["acceptable_pct"], (glam, sift)
     assert glam["true_positives"] > 0

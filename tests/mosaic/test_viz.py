@@ -223,6 +223,10 @@ def test_static_config_video_and_report(run):
     assert f"| width | {W} |" in rec["run/video"]["static"]["TextDocument:text"][0]
     report = rec["run/report"]["static"]["TextDocument:text"][0]
     assert f"| frames_until_failure | {N_FRAMES} |" in report
+    # the written mosaic itself, as a static image at the end
+    final = decode_jpeg(rec["final/mosaic"]["static"]["EncodedImage:blob"])
+    assert final.shape == run["mosaic"].shape
+    assert np.abs(final.astype(int) - run["mosaic"].astype(int)).mean() < 4  # JPEG only
 
 
 def test_python_logging_reaches_the_recording_and_is_detached(tmp_path):
