@@ -48,6 +48,7 @@ class FeaturesConfig:
     detect_scale: float = 1.0  # detect on the frame resized by this (<= 1: faster, coarser)
     weights: str = ""  # GLAMpoints weights file; empty: the weights shipped in the package
     device: str = "cpu"  # where GLAMpoints runs its network: cpu | cuda (a CUDA GPU if present)
+    extra_scale: float = 0.0  # GLAMpoints: also detect on the frame resized by this (0: off)
 
 
 @dataclass(frozen=True)
@@ -154,7 +155,7 @@ POSITIVE = {
     ("keyframes", "max_keyframes"),
 }
 
-AT_MOST_ONE = {("features", "detect_scale")}
+AT_MOST_ONE = {("features", "detect_scale"), ("features", "extra_scale")}
 
 
 def _check_value(table: str, key: str, value: Any, expected: type) -> Any:

@@ -159,10 +159,32 @@ class GlamPointsDetector:
             max_keypoints=config.max_keypoints,
             device=config.device,
         )
+        self._extra_scale = config.extra_scale
+        self._extra_size = (
+            config.descriptor_size_px / config.extra_scale if config.extra_scale else 0
+        )
 
     def detect(self, gray: np.ndarray, mask: np.ndarray) -> tuple[Keypoints, np.ndarray]:
+        """Keypoints of the frame (size 0: the configured descriptor size); with `extra_scale`,
+        plus those of a smaller copy, in frame pixels and described on a larger support, so
+        that views of different magnification still share points (the network is single-scale).
+        """
         keypoints = self._model.detect(gray, mask)
-        return keypoints, np.full(len(keypoints), 0.0, np.float32)
+        sizes = np.zeros(len(keypoints), np.float32)
+        s = self._extra_scale
+        if not s or s >= 1.0:
+            return keypoints, sizes
+        h, w = gray.shape
+        size = (max(round(w * s), 16), max(round(h * s), 16))
+        small = self._model.detect(
+            cv2.resize(gray, size, interpolation=cv2.INTER_AREA),
+            cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST),
+        )
+        scale_xy = np.array([w / size[0], h / size[1]], np.float32)
+        xy = ((small.xy + 0.5) * scale_xy - 0.5).astype(np.float32)
+        return Keypoints(
+            np.concatenate([keypoints.xy, xy]), np.concatenate([keypoints.scores, small.scores])
+        ), np.concatenate([sizes, np.full(len(xy), self._extra_size, np.float32)])
 
     def native(self, gray: np.ndarray, mask: np.ndarray) -> Features:
         raise ConfigError("detector glampoints has no descriptor of its own; use rootsift")

@@ -115,3 +115,34 @@ def test_glampoints_on_a_missing_gpu_is_a_clear_config_error():
         pytest.skip("this machine has a CUDA GPU")
     with pytest.raises(ConfigError, match='device = "cuda"'):
         FeatureExtractor(FeaturesConfig(detector="glampoints", device="cuda"))
+
+
+def test_glampoints_extra_scale_adds_coarse_points_described_larger(fundus):
+    prepared = prepare(fundus[300:900, 300:1100], Config().preprocess)
+    prepared.mask[:, :200] = 0
+    plain = FeatureExtractor(FeaturesConfig(detector="glampoints")).detect(prepared)
+    both = FeatureExtractor(FeaturesConfig(detector="glampoints", extra_scale=0.7)).detect(prepared)
+    n = len(plain)
+    # the frame's own points come first, unchanged, at the configured descriptor size
+    np.testing.assert_array_equal(both.xy[:n], plain.xy)
+    np.testing.assert_allclose(both.sizes[:n], 10.0)
+    extra = both.xy[n:]
+    assert len(extra) > 0.3 * n  # the 0.7x copy has about half the area: fewer points
+    np.testing.assert_allclose(both.sizes[n:], 10.0 / 0.7, rtol=1e-5)
+    assert extra[:, 0].min() >= 200 - 2  # the mask holds for them too (to a pixel)
+    # coarse points sit where the fine map also responds: most have a fine point within 3 px
+    d = np.linalg.norm(extra[:, None] - plain.xy[None], axis=2).min(axis=1)
+    assert np.median(d) < 3.0, np.median(d)
+
+
+def test_glampoints_extra_scale_registers_a_zoomed_pair(fundus):
+    """Views 1.6x apart in magnification: the coarse points carry the registration."""
+    H_b_to_a = similarity(3.0, 1.6, 10.0, -5.0, center=(240, 160))
+    a, b = crop_pair(fundus, H_b_to_a, origin=(450, 500), size=(480, 320))
+    regs = {}
+    for extra in (0.0, 0.7):
+        config = with_overrides(Config(), features={"detector": "glampoints", "extra_scale": extra})
+        regs[extra] = register_pair(a, b, config, FeatureExtractor(config.features))
+    assert regs[0.7].ok, regs[0.7].reason
+    assert corner_error(regs[0.7].H_cur_to_prev, H_b_to_a, (480, 320)) < 3.0
+    assert regs[0.7].n_inliers > 2 * regs[0.0].n_inliers  # measured: 200 vs 59
