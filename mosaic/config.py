@@ -31,6 +31,9 @@ class PreprocessConfig:
     fov_mask: bool = True  # keep keypoints off the dark border of fundus / slit-lamp frames
     fov_threshold: int = 12  # grey level under which a border pixel counts as outside the view
     fov_erode_px: int = 6  # margin kept away from the field-of-view edge
+    overlay_mask: bool = True  # no keypoints on burned-in overlays (pixels that never change)
+    overlay_max_range: int = 2  # grey levels a pixel may vary over the video and count as static
+    overlay_margin_px: int = 6  # margin kept away from a static overlay
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features
 from mosaic.io import Frame, prefetch
 from mosaic.matching import Matches, match_descriptors
-from mosaic.preprocess import FrameGate, Prepared, prepare
+from mosaic.preprocess import FrameGate, OverlayMask, Prepared, prepare
 from mosaic.registration import Registration, estimate_homography
 from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
@@ -150,6 +150,7 @@ class MosaicBuilder:
         self.stopped = False  # set by on_failure = "stop" at the first failed frame
         self._segments: list[_Segment] = []
         self._gate = FrameGate(config.gating)
+        self._overlay = OverlayMask(config.preprocess)
         self._started = time.perf_counter()
 
     @property
@@ -179,14 +180,15 @@ class MosaicBuilder:
             yield self.register(item)
 
     def extract(self, index: int, image: np.ndarray | None, error: str | None = None) -> Extracted:
-        """Preprocess, gate, detect and describe one frame (independent of other frames but
-        for the gate's recent history, so frames must come in order)."""
+        """Preprocess, gate, mask overlays, detect and describe one frame (independent of other
+        frames but for the gate and overlay histories, so frames must come in order)."""
         record = FrameRecord(index=index)
         if image is None:
             return Extracted(record, None, skip=error or "frame could not be decoded")
         timer = _Timer(record)
         prepared = timer.run("preprocess", prepare, image, self.config.preprocess)
-        gate_reason = self._gate(prepared)
+        gate_reason = self._gate(prepared)  # before overlay masking: sharpness of the whole view
+        prepared = timer.run("preprocess", self._overlay, image, prepared)
         if gate_reason is not None:
             return Extracted(record, image, prepared, skip=gate_reason)
         detected = timer.run("detect", self.extractor.detect, prepared)

@@ -1,7 +1,9 @@
 """Fundus pre-processing of the paper (green channel, CLAHE, bilateral) and the field-of-view mask.
 
 The detector sees `Prepared.gray`; keypoints are only kept where `Prepared.mask` is set, so the
-dark border around the circular/elliptical view of fundus and slit-lamp frames yields none.
+dark border around the circular/elliptical view of fundus and slit-lamp frames yields none, nor
+(with `OverlayMask`) burned-in overlays such as a fixation cross, text or a timestamp, which
+would otherwise pull every frame to the same place.
 """
 
 from __future__ import annotations
@@ -92,6 +94,56 @@ def sharpness(prepared: Prepared) -> float:
     if not mask.any():
         return 0.0
     return float(cv2.Laplacian(small, cv2.CV_32F)[mask].var())
+
+
+class OverlayMask:
+    """Finds pixels that stay the same in every frame so far (burned-in overlays) and masks them.
+
+    A per-pixel running minimum and maximum of the grey frames (before enhancement); once
+    `MIN_FRAMES` frames are seen, connected shapes of at least `MIN_AREA_PX` pixels whose range
+    is at most `overlay_max_range` grey levels, grown by `overlay_margin_px`, are taken out of
+    the keypoint mask. If they cover more than `MAX_FRACTION` of the frame, the camera (not an
+    overlay) is static and nothing is masked. Frames must come in order; a frame of another
+    size starts afresh.
+    """
+
+    MIN_FRAMES = 5
+    MIN_AREA_PX = 50  # smallest connected static shape taken for an overlay
+    MAX_FRACTION = 0.2
+
+    def __init__(self, config: PreprocessConfig):
+        self._config = config
+        self._lo: np.ndarray | None = None
+        self._hi: np.ndarray | None = None
+        self._n = 0
+
+    def __call__(self, image: np.ndarray, prepared: Prepared) -> Prepared:
+        """`prepared` with static pixels of `image` (BGR or grey) removed from its mask."""
+        if not self._config.overlay_mask:
+            return prepared
+        gray = to_gray(image, self._config.green_channel)
+        if self._lo is None or self._lo.shape != gray.shape:
+            self._lo, self._hi, self._n = gray.copy(), gray.copy(), 0
+        else:
+            np.minimum(self._lo, gray, out=self._lo)
+            np.maximum(self._hi, gray, out=self._hi)
+        self._n += 1
+        if self._n < self.MIN_FRAMES:
+            return prepared
+        static = (self._hi - self._lo) <= self._config.overlay_max_range  # uint8: hi >= lo
+        static &= prepared.mask > 0
+        # an overlay is a solid shape; pixels that merely have not changed yet are scattered
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(static.view(np.uint8), 8)
+        big = stats[:, cv2.CC_STAT_AREA] >= self.MIN_AREA_PX
+        big[0] = False  # background label
+        static = big[labels]
+        r = self._config.overlay_margin_px
+        if r > 0 and static.any():
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+            static = cv2.dilate(static.view(np.uint8), kernel).astype(bool)
+        if not static.any() or static.mean() > self.MAX_FRACTION:
+            return prepared
+        return Prepared(prepared.gray, np.where(static, np.uint8(0), prepared.mask))
 
 
 class FrameGate:

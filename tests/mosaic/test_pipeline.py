@@ -185,3 +185,33 @@ def test_detecting_at_half_scale_still_follows_the_ground_truth(video):
         for e in frames[1:]
     ]
     assert np.mean(errors) < 4.0, errors
+
+
+def test_burned_in_overlay_is_masked_and_registration_follows_the_retina(tmp_path):
+    """A fixation cross and a text line drawn at the same place in every frame."""
+    folder, gt = _frames_folder(tmp_path, 24)
+    for path in sorted(folder.glob("*.png")):
+        image = cv2.imread(str(path))
+        cv2.rectangle(image, (180, 110), (220, 190), (0, 0, 0), -1)
+        cv2.rectangle(image, (150, 135), (250, 165), (0, 0, 0), -1)
+        text = "OD 12:34:56 ID 0042"
+        cv2.putText(image, text, (20, 40), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2)
+        cv2.imwrite(str(path), image)
+    mean_error = {}
+    for on in (False, True):
+        config = with_overrides(_config(strategy="chain"), preprocess={"overlay_mask": on})
+        frames = _run(folder, config).report["frames"]
+        assert [f["status"] for f in frames] == ["registered"] * 24
+        H0 = np.array(frames[0]["H_to_canvas"])
+        mean_error[on] = np.mean(
+            [
+                corner_error(
+                    np.linalg.inv(H0) @ np.array(e["H_to_canvas"]),
+                    np.linalg.inv(gt[0]) @ gt[e["index"]],
+                    SIZE,
+                )
+                for e in frames[1:]
+            ]
+        )
+    # measured: 1.25 px with the overlay's keypoints, 0.72 px without them
+    assert mean_error[True] < 1.0 and mean_error[True] < 0.8 * mean_error[False], mean_error

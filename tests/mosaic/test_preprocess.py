@@ -3,7 +3,7 @@ import numpy as np
 
 from glampoints.synthetic import frame_preprocess
 from mosaic.config import PreprocessConfig
-from mosaic.preprocess import field_of_view_mask, prepare
+from mosaic.preprocess import OverlayMask, field_of_view_mask, prepare
 
 
 def _disc_frame(h=200, w=300, radius=80):
@@ -57,3 +57,25 @@ def test_training_sees_the_apps_default_preprocessing():
     grey = cv2.GaussianBlur(rng.integers(0, 256, (120, 160), dtype=np.uint8), (0, 0), 2.0)
     bgr = np.dstack([grey // 2, grey, grey // 3])
     np.testing.assert_array_equal(prepare(bgr, PreprocessConfig()).gray, frame_preprocess(grey))
+
+
+def test_overlay_mask_removes_a_static_cross_but_not_a_static_camera():
+    rng = np.random.default_rng(0)
+    config = PreprocessConfig()
+    moving, still = OverlayMask(config), OverlayMask(config)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (240, 320), dtype=np.uint8), (0, 0), 3)
+    for k in range(OverlayMask.MIN_FRAMES):
+        frame = np.roll(base, 3 * k, axis=1)  # the view moves ...
+        cv2.rectangle(frame, (150, 90), (170, 150), 0, -1)  # ... a burned-in cross does not
+        cv2.rectangle(frame, (130, 110), (190, 130), 0, -1)
+        bgr = np.dstack([frame] * 3)
+        masked = moving(bgr, prepare(bgr, config))
+        unmoved = still(np.dstack([base] * 3), prepare(np.dstack([base] * 3), config))
+    cross = np.zeros((240, 320), bool)
+    cross[90:151, 150:171] = cross[110:131, 130:191] = True
+    assert (masked.mask[cross] == 0).all()  # the cross and its margin are out
+    assert (masked.mask[:, :100] == 255).mean() > 0.99  # the moving retina stays in
+    ring = cv2.dilate(cross.view(np.uint8), np.ones((25, 25), np.uint8)).astype(bool) & ~cross
+    assert 0.2 < (masked.mask[ring] == 0).mean() < 0.8  # a margin of ~6 px, not more
+    # a camera that does not move: everything is static, nothing is masked
+    np.testing.assert_array_equal(unmoved.mask, prepare(np.dstack([base] * 3), config).mask)
