@@ -302,7 +302,8 @@ class MosaicBuilder:
                 continue
             segment = todo[owner[index]]
             H = segment.refined_poses[index]  # type: ignore[index]
-            mask = prepare(image, self.config.preprocess).mask
+            # the overlay estimate of the whole video: no overlay pixels from any frame
+            mask = self._overlay.apply(prepare(image, self.config.preprocess)).mask
             canvases[segment.index].add(image, H, mask)
         for k, canvas in canvases.items():
             segment = todo[k]

@@ -118,7 +118,7 @@ class OverlayMask:
         self._n = 0
 
     def __call__(self, image: np.ndarray, prepared: Prepared) -> Prepared:
-        """`prepared` with static pixels of `image` (BGR or grey) removed from its mask."""
+        """Take `image` (BGR or grey) into the history; `prepared` without its static pixels."""
         if not self._config.overlay_mask:
             return prepared
         gray = to_gray(image, self._config.green_channel)
@@ -128,7 +128,17 @@ class OverlayMask:
             np.minimum(self._lo, gray, out=self._lo)
             np.maximum(self._hi, gray, out=self._hi)
         self._n += 1
-        if self._n < self.MIN_FRAMES:
+        return self.apply(prepared)
+
+    def apply(self, prepared: Prepared) -> Prepared:
+        """`prepared` without the overlay found so far (the whole video's, once it is read)."""
+        if (
+            not self._config.overlay_mask
+            or self._lo is None
+            or self._hi is None
+            or self._lo.shape != prepared.mask.shape
+            or self._n < self.MIN_FRAMES
+        ):
             return prepared
         static = (self._hi - self._lo) <= self._config.overlay_max_range  # uint8: hi >= lo
         static &= prepared.mask > 0
