@@ -108,6 +108,7 @@ class OverlayMask:
     """
 
     MIN_FRAMES = 5
+    REFRESH_FRAMES = 10  # frames between two searches for static shapes
     MIN_AREA_PX = 50  # smallest connected static shape taken for an overlay
     MAX_FRACTION = 0.2
 
@@ -116,32 +117,49 @@ class OverlayMask:
         self._lo: np.ndarray | None = None
         self._hi: np.ndarray | None = None
         self._n = 0
+        self._static: np.ndarray | None = None  # the overlay (bool HxW) as last found
+        self._static_at = -1  # frame count when it was found
 
     def __call__(self, image: np.ndarray, prepared: Prepared) -> Prepared:
         """Take `image` (BGR or grey) into the history; `prepared` without its static pixels."""
         if not self._config.overlay_mask:
             return prepared
         gray = to_gray(image, self._config.green_channel)
-        if self._lo is None or self._lo.shape != gray.shape:
-            self._lo, self._hi, self._n = gray.copy(), gray.copy(), 0
+        if self._lo is None or self._hi is None or self._lo.shape != gray.shape:
+            self._lo, self._hi, self._n, self._static_at = gray.copy(), gray.copy(), 0, -1
         else:
             np.minimum(self._lo, gray, out=self._lo)
             np.maximum(self._hi, gray, out=self._hi)
         self._n += 1
-        return self.apply(prepared)
+        # the static set only shrinks as frames come: refreshing it now and then is enough
+        stale = self._static_at < 0 or self._n - self._static_at >= self.REFRESH_FRAMES
+        return self._masked(prepared, refresh=stale)
 
     def apply(self, prepared: Prepared) -> Prepared:
-        """`prepared` without the overlay found so far (the whole video's, once it is read)."""
+        """`prepared` without the overlay found in all frames so far (e.g. the whole video)."""
+        return self._masked(prepared, refresh=self._static_at != self._n)
+
+    def _masked(self, prepared: Prepared, refresh: bool) -> Prepared:
         if (
             not self._config.overlay_mask
             or self._lo is None
-            or self._hi is None
             or self._lo.shape != prepared.mask.shape
             or self._n < self.MIN_FRAMES
         ):
             return prepared
+        if refresh:
+            self._static = self._find_static(prepared.mask)
+            self._static_at = self._n
+        if self._static is None:
+            return prepared
+        return Prepared(prepared.gray, np.where(self._static, np.uint8(0), prepared.mask))
+
+    def _find_static(self, fov: np.ndarray) -> np.ndarray | None:
+        """Overlay pixels inside the view `fov` (with their margin), or None when there is none
+        or the camera itself is static."""
+        assert self._lo is not None and self._hi is not None
         static = (self._hi - self._lo) <= self._config.overlay_max_range  # uint8: hi >= lo
-        static &= prepared.mask > 0
+        static &= fov > 0
         # an overlay is a solid shape; pixels that merely have not changed yet are scattered
         _, labels, stats, _ = cv2.connectedComponentsWithStats(static.view(np.uint8), 8)
         big = stats[:, cv2.CC_STAT_AREA] >= self.MIN_AREA_PX
@@ -152,8 +170,8 @@ class OverlayMask:
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
             static = cv2.dilate(static.view(np.uint8), kernel).astype(bool)
         if not static.any() or static.mean() > self.MAX_FRACTION:
-            return prepared
-        return Prepared(prepared.gray, np.where(static, np.uint8(0), prepared.mask))
+            return None
+        return static
 
 
 class FrameGate:
