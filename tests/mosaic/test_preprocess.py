@@ -79,3 +79,24 @@ def test_overlay_mask_removes_a_static_cross_but_not_a_static_camera():
     assert 0.2 < (masked.mask[ring] == 0).mean() < 0.8  # a margin of ~6 px, not more
     # a camera that does not move: everything is static, nothing is masked
     np.testing.assert_array_equal(unmoved.mask, prepare(np.dstack([base] * 3), config).mask)
+
+
+def test_overlay_mask_follows_an_overlay_that_goes_away():
+    """Static until frame 9, then the box shows retina: once re-searched, it is no overlay."""
+    rng = np.random.default_rng(1)
+    config = PreprocessConfig()
+    overlay = OverlayMask(config)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (240, 320), dtype=np.uint8), (0, 0), 3)
+    box = np.zeros((240, 320), bool)
+    box[100:140, 140:200] = True
+    masked_per_frame = []
+    for k in range(OverlayMask.MIN_FRAMES + 2 * OverlayMask.REFRESH_FRAMES):
+        frame = np.roll(base, 3 * k, axis=1)
+        if k < 10:
+            frame[box] = 255
+        bgr = np.dstack([frame] * 3)
+        masked_per_frame.append(bool((overlay(bgr, prepare(bgr, config)).mask[box] == 0).all()))
+    assert masked_per_frame[OverlayMask.MIN_FRAMES - 1 : 10] == [True] * (
+        11 - OverlayMask.MIN_FRAMES
+    )
+    assert not any(masked_per_frame[-OverlayMask.REFRESH_FRAMES :])  # re-searched since
