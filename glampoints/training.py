@@ -440,17 +440,18 @@ def _batch(
     return I1s, I2s, Hs
 
 
-def _load_bases(folder: str | Path, cfg: TrainConfig) -> list[np.ndarray]:
+def _load_bases(files: Sequence[Path], cfg: TrainConfig) -> list[np.ndarray]:
     clahe = not cfg.preprocess_crops  # crops get CLAHE after their appearance changes instead
-    return [
-        load_base_image(p, cfg.preprocess, cfg.max_base_side, clahe) for p in list_images(folder)
-    ]
+    return [load_base_image(p, cfg.preprocess, cfg.max_base_side, clahe) for p in files]
 
 
 def validation_pairs(cfg: TrainConfig) -> list[Pair]:
     """The fixed validation pairs of a run, pre-processed as the training crops are."""
     pairs = fixed_pairs(
-        _load_bases(cfg.val_dir, cfg), cfg.seed + 1000, cfg.val_pairs_per_image, cfg.val_crop
+        _load_bases(list_images(cfg.val_dir), cfg),
+        cfg.seed + 1000,
+        cfg.val_pairs_per_image,
+        cfg.val_crop,
     )
     if cfg.preprocess_crops:
         pairs = [(frame_preprocess(a), frame_preprocess(b), H) for a, b, H in pairs]
@@ -512,7 +513,7 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
     if ckpt is not None and list(ckpt.get("files", [])) != names:
         raise TrainingError(f"the images in {cfg.data_dir} differ from the checkpoint's list")
     t0 = time.perf_counter()
-    bases = _load_bases(cfg.data_dir, cfg)
+    bases = _load_bases(files, cfg)  # the very files the checkpoint's list was checked against
     val_pairs = validation_pairs(cfg)
     log.info(
         "%d training images, %d validation pairs (%.1f s to load)",

@@ -57,6 +57,22 @@ def _strongest(n: int, scores: np.ndarray, limit: int) -> np.ndarray:
     return order[: min(n, limit)]
 
 
+def resized_for_detection(
+    gray: np.ndarray, mask: np.ndarray, scale: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame and mask resized by `scale`, and the (x, y) factor from their pixels to the frame's."""
+    h, w = gray.shape
+    size = (max(round(w * scale), 16), max(round(h * scale), 16))
+    small = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    small_mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
+    return small, small_mask, np.array([w / size[0], h / size[1]], np.float32)
+
+
+def to_frame_pixels(xy: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """Points of a resized frame in the frame's pixels (pixel centres: (x + 0.5) * f - 0.5)."""
+    return ((xy + 0.5) * factor - 0.5).astype(np.float32)
+
+
 class OpenCVDetector:
     """A classical OpenCV detector (SIFT, ORB, AKAZE, KAZE, BRISK)."""
 
@@ -174,17 +190,12 @@ class GlamPointsDetector:
         s = self._extra_scale
         if not s or s >= 1.0:
             return keypoints, sizes
-        h, w = gray.shape
-        size = (max(round(w * s), 16), max(round(h * s), 16))
-        small = self._model.detect(
-            cv2.resize(gray, size, interpolation=cv2.INTER_AREA),
-            cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST),
-        )
-        scale_xy = np.array([w / size[0], h / size[1]], np.float32)
-        xy = ((small.xy + 0.5) * scale_xy - 0.5).astype(np.float32)
+        small_gray, small_mask, factor = resized_for_detection(gray, mask, s)
+        small = self._model.detect(small_gray, small_mask)
         return Keypoints(
-            np.concatenate([keypoints.xy, xy]), np.concatenate([keypoints.scores, small.scores])
-        ), np.concatenate([sizes, np.full(len(xy), self._extra_size, np.float32)])
+            np.concatenate([keypoints.xy, to_frame_pixels(small.xy, factor)]),
+            np.concatenate([keypoints.scores, small.scores]),
+        ), np.concatenate([sizes, np.full(len(small), self._extra_size, np.float32)])
 
     def native(self, gray: np.ndarray, mask: np.ndarray) -> Features:
         raise ConfigError("detector glampoints has no descriptor of its own; use rootsift")
@@ -262,14 +273,10 @@ class FeatureExtractor:
         s = self.config.detect_scale
         if s == 1.0:
             return self.detector.detect(prepared.gray, prepared.mask)
-        h, w = prepared.gray.shape
-        size = (max(round(w * s), 16), max(round(h * s), 16))
-        gray = cv2.resize(prepared.gray, size, interpolation=cv2.INTER_AREA)
-        mask = cv2.resize(prepared.mask, size, interpolation=cv2.INTER_NEAREST)
+        gray, mask, factor = resized_for_detection(prepared.gray, prepared.mask, s)
         keypoints, sizes = self.detector.detect(gray, mask)
-        sx, sy = w / size[0], h / size[1]
-        # pixel centres: x_full = (x_small + 0.5) * sx - 0.5
-        xy = ((keypoints.xy + 0.5) * np.array([sx, sy], np.float32) - 0.5).astype(np.float32)
+        xy = to_frame_pixels(keypoints.xy, factor)
+        h, w = prepared.gray.shape
         inside = (xy[:, 0] <= w - 1) & (xy[:, 1] <= h - 1) & (xy >= 0).all(axis=1)
         inside &= (
             prepared.mask[
@@ -278,7 +285,7 @@ class FeatureExtractor:
             ]
             > 0
         )
-        return Keypoints(xy[inside], keypoints.scores[inside]), sizes[inside] * np.float32(sx)
+        return Keypoints(xy[inside], keypoints.scores[inside]), sizes[inside] * factor[0]
 
     def describe(self, prepared: Prepared, detected: Features) -> Features:
         """Attach upright root-SIFT descriptors to detected keypoints (no-op when native)."""
