@@ -101,6 +101,11 @@ def train(
             "base image (measured worse on videos: see glampoints/training.py)"
         ),
     ] = False,
+    descriptor_size: Annotated[
+        float,
+        typer.Option(min=1.0, help="keypoint diameter of the reward's root-SIFT descriptor"),
+    ] = 10.0,
+    lr: Annotated[float, typer.Option(min=0.0, help="Adam learning rate (paper: 1e-3)")] = 1e-3,
     verbose: Annotated[bool, typer.Option("-v", "--verbose")] = False,
 ) -> None:
     """Train GLAMpoints on synthetic pairs from the base images (the paper's schedule)."""
@@ -120,6 +125,8 @@ def train(
         pairs_per_image=pairs_per_image,
         preprocess_crops=preprocess_crops,
         init=str(init) if init else "",
+        descriptor_size_px=descriptor_size,
+        lr=lr,
     )
     try:
         summary = run_training(cfg, resume=resume)

@@ -47,7 +47,7 @@ class FeaturesConfig:
     max_keypoints: int = 1000  # strongest kept per frame
     nms_window_px: int = 10  # GLAMpoints non-maximum suppression window (paper: 10)
     score_threshold: float = 0.0  # GLAMpoints minimum score of a keypoint
-    descriptor_size_px: float = 10.0  # keypoint diameter given to the SIFT descriptor
+    descriptor_size_px: float = 6.0  # keypoint diameter given to the SIFT descriptor
     detect_scale: float = 1.0  # detect on the frame resized by this (<= 1: faster, coarser)
     weights: str = ""  # GLAMpoints weights file; empty: the weights shipped in the package
     device: str = "cpu"  # where GLAMpoints runs its network: cpu | cuda (a CUDA GPU if present)

@@ -23,6 +23,10 @@ from mosaic.preprocess import Prepared
 
 log = logging.getLogger(__name__)
 
+# Largest keypoint diameter a detector's own scale may give the descriptor: wider patches are
+# smooth on retina and match ambiguously.
+MAX_DETECTOR_SIZE_PX = 20.0
+
 
 @dataclass(frozen=True)
 class Features:
@@ -259,7 +263,8 @@ class FeatureExtractor:
         # scales (ORB, BRISK pyramid levels) are capped: such wide, smooth patches match
         # ambiguously on retina.
         size = self.config.descriptor_size_px
-        sizes = np.where(sizes > 0, np.minimum(sizes, 2 * size), size).astype(np.float32)
+        capped = np.minimum(sizes, MAX_DETECTOR_SIZE_PX)
+        sizes = np.where(sizes > 0, capped, size).astype(np.float32)
         return Features(
             keypoints.xy, keypoints.scores, sizes, np.zeros((len(sizes), 0), np.float32)
         )

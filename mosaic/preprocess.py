@@ -101,8 +101,10 @@ class OverlayMask:
 
     A per-pixel running minimum and maximum of the grey frames (before enhancement); once
     `MIN_FRAMES` frames are seen, connected shapes of at least `MIN_AREA_PX` pixels whose range
-    is at most `overlay_max_range` grey levels, grown by `overlay_margin_px`, are taken out of
-    the keypoint mask. If they cover more than `MAX_FRACTION` of the frame, the camera (not an
+    is at most `overlay_max_range` grey levels and that stand out from their surroundings by at
+    least `MIN_CONTRAST` grey levels, grown by `overlay_margin_px`, are taken out of the
+    keypoint mask (a flat patch of retina in a slowly moving view is static for a while too, but
+    looks like what surrounds it; a drawn cross or text does not). If they cover more than `MAX_FRACTION` of the frame, the camera (not an
     overlay) is static and nothing is masked. Frames must come in order; a frame of another
     size starts afresh.
     """
@@ -111,6 +113,8 @@ class OverlayMask:
     REFRESH_FRAMES = 10  # frames between two searches for static shapes
     MIN_AREA_PX = 50  # smallest connected static shape taken for an overlay
     MAX_FRACTION = 0.2
+    MIN_CONTRAST = 20.0  # grey levels between a static shape and the ring of pixels around it
+    RING_PX = 7  # width of that ring
 
     def __init__(self, config: PreprocessConfig):
         self._config = config
@@ -119,12 +123,14 @@ class OverlayMask:
         self._n = 0
         self._static: np.ndarray | None = None  # the overlay (bool HxW) as last found
         self._static_at = -1  # frame count when it was found
+        self._last: np.ndarray | None = None  # latest grey frame
 
     def __call__(self, image: np.ndarray, prepared: Prepared) -> Prepared:
         """Take `image` (BGR or grey) into the history; `prepared` without its static pixels."""
         if not self._config.overlay_mask:
             return prepared
         gray = to_gray(image, self._config.green_channel)
+        self._last = gray
         if self._lo is None or self._hi is None or self._lo.shape != gray.shape:
             self._lo, self._hi, self._n, self._static_at = gray.copy(), gray.copy(), 0, -1
         else:
@@ -161,9 +167,10 @@ class OverlayMask:
         static = (self._hi - self._lo) <= self._config.overlay_max_range  # uint8: hi >= lo
         static &= fov > 0
         # an overlay is a solid shape; pixels that merely have not changed yet are scattered
-        _, labels, stats, _ = cv2.connectedComponentsWithStats(static.view(np.uint8), 8)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(static.view(np.uint8), 8)
         big = stats[:, cv2.CC_STAT_AREA] >= self.MIN_AREA_PX
         big[0] = False  # background label
+        big &= self._contrast(labels, n, fov) >= self.MIN_CONTRAST
         static = big[labels]
         r = self._config.overlay_margin_px
         if r > 0 and static.any():
@@ -172,6 +179,24 @@ class OverlayMask:
         if not static.any() or static.mean() > self.MAX_FRACTION:
             return None
         return static
+
+    def _contrast(self, labels: np.ndarray, n: int, fov: np.ndarray) -> np.ndarray:
+        """Per label: |mean grey of the shape - mean grey of the ring around it| (latest frame)."""
+        assert self._last is not None
+        grey = self._last.astype(np.float64).ravel()
+        k = 2 * self.RING_PX + 1
+        # each ring pixel takes the largest label within RING_PX (shapes rarely touch)
+        grown = cv2.dilate(labels.astype(np.float32), np.ones((k, k), np.uint8)).astype(np.int64)
+        ring = ((labels == 0) & (grown > 0) & (fov > 0)).ravel()
+        inside = (labels > 0).ravel()
+
+        def mean_per_label(where: np.ndarray, lab: np.ndarray) -> np.ndarray:
+            total = np.bincount(lab.ravel()[where], grey[where], minlength=n)
+            count = np.bincount(lab.ravel()[where], minlength=n)
+            return np.divide(total, count, out=np.full(n, np.nan), where=count > 0)
+
+        diff = np.abs(mean_per_label(inside, labels) - mean_per_label(ring, grown))
+        return np.nan_to_num(diff, nan=0.0)  # no ring (a shape filling the view): not an overlay
 
 
 class FrameGate:

@@ -3,7 +3,7 @@ import pytest
 
 from mosaic.config import Config, FeaturesConfig, with_overrides
 from mosaic.errors import ConfigError
-from mosaic.features import DETECTORS, FeatureExtractor
+from mosaic.features import DETECTORS, MAX_DETECTOR_SIZE_PX, FeatureExtractor
 from mosaic.pipeline import register_pair
 from mosaic.preprocess import prepare
 from tests.helpers import corner_error, crop_pair, similarity
@@ -125,10 +125,11 @@ def test_glampoints_extra_scale_adds_coarse_points_described_larger(fundus):
     n = len(plain)
     # the frame's own points come first, unchanged, at the configured descriptor size
     np.testing.assert_array_equal(both.xy[:n], plain.xy)
-    np.testing.assert_allclose(both.sizes[:n], 10.0)
+    size = FeaturesConfig().descriptor_size_px
+    np.testing.assert_allclose(both.sizes[:n], size)
     extra = both.xy[n:]
     assert len(extra) > 0.3 * n  # the 0.7x copy has about half the area: fewer points
-    np.testing.assert_allclose(both.sizes[n:], 10.0 / 0.7, rtol=1e-5)
+    np.testing.assert_allclose(both.sizes[n:], size / 0.7, rtol=1e-5)
     assert extra[:, 0].min() >= 200 - 2  # the mask holds for them too (to a pixel)
     # coarse points sit where the fine map also responds: most have a fine point within 3 px
     d = np.linalg.norm(extra[:, None] - plain.xy[None], axis=2).min(axis=1)
@@ -146,3 +147,15 @@ def test_glampoints_extra_scale_registers_a_zoomed_pair(fundus):
     assert regs[0.7].ok, regs[0.7].reason
     assert corner_error(regs[0.7].H_cur_to_prev, H_b_to_a, (480, 320)) < 3.0
     assert regs[0.7].n_inliers > 2 * regs[0.0].n_inliers  # measured: 200 vs 59
+
+
+def test_detector_scales_are_kept_up_to_a_cap_whatever_the_scale_free_size(fundus):
+    """SIFT describes at its own scales (capped at MAX_DETECTOR_SIZE_PX); the configured size
+    is only for detectors without a scale, so changing it leaves SIFT's features alone."""
+    prepared = prepare(fundus[300:900, 300:1100], Config().preprocess)
+    small = FeatureExtractor(FeaturesConfig(detector="sift", descriptor_size_px=4.0))(prepared)
+    large = FeatureExtractor(FeaturesConfig(detector="sift", descriptor_size_px=30.0))(prepared)
+    np.testing.assert_array_equal(small.sizes, large.sizes)
+    np.testing.assert_array_equal(small.descriptors, large.descriptors)
+    assert small.sizes.max() <= MAX_DETECTOR_SIZE_PX
+    assert np.ptp(small.sizes) > 2.0  # real scales, not one value

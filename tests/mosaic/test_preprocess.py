@@ -100,3 +100,21 @@ def test_overlay_mask_follows_an_overlay_that_goes_away():
         11 - OverlayMask.MIN_FRAMES
     )
     assert not any(masked_per_frame[-OverlayMask.REFRESH_FRAMES :])  # re-searched since
+
+
+def test_overlay_mask_ignores_a_static_patch_that_looks_like_its_surroundings():
+    """A flat patch of retina that a slow view has not moved over yet is static too; unlike a
+    drawn overlay it has the grey of what surrounds it, so it keeps its keypoints."""
+    rng = np.random.default_rng(2)
+    config = PreprocessConfig()
+    overlay = OverlayMask(config)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (240, 320), dtype=np.uint8), (0, 0), 3)
+    box = np.zeros((240, 320), bool)
+    box[100:140, 140:200] = True
+    for k in range(OverlayMask.MIN_FRAMES + 1):
+        frame = np.roll(base, 3 * k, axis=1)
+        frame[box] = round(float(np.mean(base)))  # flat, static, the retina's mean grey
+        bgr = np.dstack([frame] * 3)
+        prepared = prepare(bgr, config)
+        masked = overlay(bgr, prepared)
+    np.testing.assert_array_equal(masked.mask, prepared.mask)
