@@ -40,7 +40,7 @@ class PreprocessConfig:
 class FeaturesConfig:
     """Keypoint detector and descriptor."""
 
-    detector: str = "sift"  # a key of mosaic.features.DETECTORS
+    detector: str = "glampoints"  # a key of mosaic.features.DETECTORS
     descriptor: str = (
         "rootsift"  # "rootsift": upright root-SIFT (the paper's); "native": detector's own
     )
