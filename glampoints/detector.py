@@ -32,6 +32,7 @@ from __future__ import annotations
 import copy
 import itertools
 import logging
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -135,6 +136,16 @@ class _Padded(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(self.head(self.net.features_padded(x).float()))
+
+
+def cpu_has_native_bfloat16() -> bool:
+    """Whether this CPU does bfloat16 dot products in hardware (AVX512-BF16 or AMX; read from
+    /proc/cpuinfo, so Linux only): elsewhere bfloat16 is emulated and slower than float32."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return bool(re.search(r"\b(avx512_bf16|amx_bf16)\b", info))
 
 
 def onednn_fusion_available() -> bool:

@@ -158,6 +158,13 @@ class RandomGrid:
         raise ConfigError("detector random-grid has no descriptor of its own; use rootsift")
 
 
+def resolve_precision(config: FeaturesConfig, native_bfloat16: bool) -> str:
+    """The network's precision: "auto" is bfloat16 on a CPU that has it in hardware."""
+    if config.precision != "auto":
+        return config.precision
+    return "bfloat16" if config.device == "cpu" and native_bfloat16 else "float32"
+
+
 class GlamPointsDetector:
     """Adapter of the learned GLAMpoints detector (the one place mosaic meets glampoints)."""
 
@@ -166,7 +173,7 @@ class GlamPointsDetector:
     def __init__(self, config: FeaturesConfig):
         import torch
 
-        from glampoints.detector import GlamPoints
+        from glampoints.detector import GlamPoints, cpu_has_native_bfloat16
 
         if config.device == "cuda" and not torch.cuda.is_available():
             raise ConfigError(
@@ -178,6 +185,7 @@ class GlamPointsDetector:
             score_threshold=config.score_threshold,
             max_keypoints=config.max_keypoints,
             device=config.device,
+            precision=resolve_precision(config, cpu_has_native_bfloat16()),
         )
         self._extra_scale = config.extra_scale
         self._extra_size = (

@@ -104,9 +104,9 @@ class OverlayMask:
     is at most `overlay_max_range` grey levels and that stand out from their surroundings by at
     least `MIN_CONTRAST` grey levels, grown by `overlay_margin_px`, are taken out of the
     keypoint mask (a flat patch of retina in a slowly moving view is static for a while too, but
-    looks like what surrounds it; a drawn cross or text does not). If they cover more than `MAX_FRACTION` of the frame, the camera (not an
-    overlay) is static and nothing is masked. Frames must come in order; a frame of another
-    size starts afresh.
+    looks like what surrounds it; a drawn cross or text does not). If they cover more than
+    `MAX_FRACTION` of the frame, the camera (not an overlay) is static and nothing is masked.
+    Frames must come in order; a frame of another size starts afresh.
     """
 
     MIN_FRAMES = 5

@@ -3,7 +3,7 @@ import pytest
 
 from mosaic.config import Config, FeaturesConfig, with_overrides
 from mosaic.errors import ConfigError
-from mosaic.features import DETECTORS, MAX_DETECTOR_SIZE_PX, FeatureExtractor
+from mosaic.features import DETECTORS, MAX_DETECTOR_SIZE_PX, FeatureExtractor, resolve_precision
 from mosaic.pipeline import register_pair
 from mosaic.preprocess import prepare
 from tests.helpers import corner_error, crop_pair, similarity
@@ -159,3 +159,25 @@ def test_detector_scales_are_kept_up_to_a_cap_whatever_the_scale_free_size(fundu
     np.testing.assert_array_equal(small.descriptors, large.descriptors)
     assert small.sizes.max() <= MAX_DETECTOR_SIZE_PX
     assert np.ptp(small.sizes) > 2.0  # real scales, not one value
+
+
+@pytest.mark.parametrize(
+    ("precision", "device", "native", "expected"),
+    [
+        ("auto", "cpu", True, "bfloat16"),
+        ("auto", "cpu", False, "float32"),  # emulated bfloat16 is slower than float32
+        ("auto", "cuda", True, "float32"),
+        ("float32", "cpu", True, "float32"),
+        ("bfloat16", "cpu", False, "bfloat16"),  # asked for explicitly: honoured
+    ],
+)
+def test_glampoints_precision_auto_takes_bfloat16_only_where_the_cpu_has_it(
+    precision, device, native, expected
+):
+    config = FeaturesConfig(detector="glampoints", precision=precision, device=device)
+    assert resolve_precision(config, native) == expected
+
+
+def test_glampoints_precision_reaches_the_network():
+    extractor = FeatureExtractor(FeaturesConfig(detector="glampoints", precision="bfloat16"))
+    assert extractor.detector._model.precision == "bfloat16"
