@@ -24,6 +24,7 @@ import numpy as np
 
 from mosaic.config import Config, with_overrides
 from mosaic.errors import MosaicError
+from mosaic.features import resolve_precision
 from mosaic.io import Frame, open_frames, sample_image_path
 from mosaic.pipeline import STAGES, MosaicBuilder
 from mosaic.synth import SynthParams, write_synthetic_video
@@ -65,6 +66,13 @@ def cuda_available() -> bool:
     import torch
 
     return bool(torch.cuda.is_available())
+
+
+def native_bfloat16() -> bool:
+    """Whether this CPU has bfloat16 in hardware (the GLAMpoints precision variant is measured)."""
+    from glampoints.detector import cpu_has_native_bfloat16
+
+    return cpu_has_native_bfloat16()
 
 
 def _timed(frames: Iterable[Frame], out: list[float]) -> Iterator[Frame]:
@@ -144,7 +152,8 @@ def run_bench(
     scales: Sequence[float] = (),
 ) -> list[BenchRow]:
     """Every detector on one synthetic video, then variants of the first one: GLAMpoints on the
-    GPU (where CUDA is available), each detection scale in `scales`, without overlap, and with
+    GPU (where CUDA is available) and in the other precision (where the CPU has bfloat16 in
+    hardware), each detection scale in `scales`, without overlap, and with
     the rerun recording."""
     config = config or Config()
     rows: list[BenchRow] = []
@@ -165,6 +174,11 @@ def run_bench(
             progress(f"{base.name} on the GPU")
             gpu = with_overrides(cfg, features={"device": "cuda"})
             rows.append(run_variant(f"{base.name} (cuda)", video, gpu))
+        if base.detector == "glampoints" and cfg.features.device == "cpu" and native_bfloat16():
+            other = "float32" if resolve_precision(cfg.features, True) == "bfloat16" else "bfloat16"
+            progress(f"{base.name} in {other}")
+            precise = with_overrides(cfg, features={"precision": other})
+            rows.append(run_variant(f"{base.name} ({other})", video, precise))
         for scale in scales:
             progress(f"{base.name} detecting at scale {scale:g}")
             scaled = with_overrides(cfg, features={"detect_scale": scale})

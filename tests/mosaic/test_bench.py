@@ -58,3 +58,17 @@ def test_profile_names_the_pipeline_stages():
     # the hot functions of a SIFT frame are there: detection, description, matching, RANSAC
     for name in ("detect", "_cell_histograms", "distance_matrix", "findHomography"):
         assert name in text, text
+
+
+def test_bench_measures_glampoints_in_the_other_precision_where_the_cpu_has_bfloat16(
+    monkeypatch,
+):
+    import mosaic.bench as bench
+
+    monkeypatch.setattr(bench, "native_bfloat16", lambda: True)
+    rows = run_bench(["glampoints"], size=(240, 160), n_frames=6)
+    names = [r.name for r in rows]
+    assert names == ["glampoints", "glampoints (bfloat16)", "glampoints (no overlap)"]
+    assert all(r.frames == 6 and r.registered >= 5 for r in rows), rows
+    monkeypatch.setattr(bench, "native_bfloat16", lambda: False)
+    assert "glampoints (bfloat16)" not in [r.name for r in run_bench(["glampoints"], (240, 160), 4)]
