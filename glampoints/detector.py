@@ -17,9 +17,13 @@ brackets): plain eval-mode UNet 87 ms (136 ms); BN-folded channels-last eager 50
 path 38 ms, best 33 ms (70); TorchScript freeze 43 ms (77); torch.compile ~40 ms after a 5-25 s
 first call; NMS 0.4 ms, sub-pixel refinement 0.1 ms. The network costs 2.7 GMAC per padded
 672x352 frame and float32 convolutions peak at ~106 GMAC/s on these two cores, so float32
-cannot go below ~26 ms here. `precision="bfloat16"` (AVX512-BF16) takes ~21 ms, but its
-score differences (~1e-2) change the registration outcome of 22% of synthetic validation pairs
-and raise the failure rate (20% -> 25% on 144 pairs), so float32 stays the default.
+cannot go below ~26 ms here. `precision="bfloat16"` (AVX512-BF16) takes ~25 ms (min ~20).
+Its scores differ by ~1e-2, which changes which of two near-equal maxima NMS keeps; with the
+epoch-10 weights and a 10 px descriptor that looked harmful (failures 20% -> 25% on 144 pairs),
+but with the shipped weights and the app's 6 px descriptor it is at parity (380 training-image
+pairs: 51.8% vs 51.6% acceptable; 6 hard synthetic videos: 0.948 vs 0.967 of frames within
+10 px). This class defaults to float32; the app's `[features] precision = "auto"` takes
+bfloat16 where the CPU has it in hardware (`cpu_has_native_bfloat16`).
 
 Threads: numpy's OpenBLAS workers spin for a while after each BLAS call; in a process that
 calls numpy matmul between frames they compete with these two torch threads and halve the

@@ -52,7 +52,7 @@ class FeaturesConfig:
     weights: str = ""  # GLAMpoints weights file; empty: the weights shipped in the package
     device: str = "cpu"  # where GLAMpoints runs its network: cpu | cuda (a CUDA GPU if present)
     extra_scale: float = 0.0  # GLAMpoints: also detect on the frame resized by this (0: off)
-    precision: str = "float32"  # GLAMpoints network on CPU: float32 | bfloat16 | auto
+    precision: str = "auto"  # GLAMpoints network on CPU: float32 | bfloat16 | auto
 
 
 @dataclass(frozen=True)
