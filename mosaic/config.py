@@ -34,6 +34,7 @@ class PreprocessConfig:
     overlay_mask: bool = True  # no keypoints on burned-in overlays (pixels that never change)
     overlay_max_range: int = 2  # grey levels a pixel may vary over the video and count as static
     overlay_margin_px: int = 6  # margin kept away from a static overlay
+    max_side_px: int = 800  # larger frames are registered downscaled to this longer side (0: off)
 
 
 @dataclass(frozen=True)
@@ -161,6 +162,7 @@ POSITIVE = {
 }
 
 AT_MOST_ONE = {("features", "detect_scale"), ("features", "extra_scale")}
+AT_LEAST_IF_SET = {("preprocess", "max_side_px"): 64}  # 0 turns it off
 
 
 def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
@@ -178,6 +180,9 @@ def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
         raise ConfigError(f"config {where} must be > 0, got {value!r}")
     if (table, key) in AT_MOST_ONE and value > 1:
         raise ConfigError(f"config {where} must be <= 1, got {value!r}")
+    least = AT_LEAST_IF_SET.get((table, key))
+    if least is not None and 0 < value < least:
+        raise ConfigError(f"config {where} must be 0 (off) or >= {least}, got {value!r}")
     if isinstance(value, int | float) and not isinstance(value, bool) and value < 0:
         raise ConfigError(f"config {where} must be >= 0, got {value!r}")
     return value

@@ -13,12 +13,14 @@ a no-op unless the user turns it on.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
 from mosaic.compose import Canvas
@@ -27,7 +29,7 @@ from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features
 from mosaic.io import Frame, prefetch
 from mosaic.matching import Matches, match_descriptors
-from mosaic.preprocess import FrameGate, OverlayMask, Prepared, prepare
+from mosaic.preprocess import FrameGate, OverlayMask, Prepared, prepare, to_working_size
 from mosaic.registration import Registration, estimate_homography
 from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
@@ -77,10 +79,11 @@ class Extracted:
     """A frame after the stages that need no other frame; `skip` says why it goes no further."""
 
     record: FrameRecord
-    image: np.ndarray | None
-    prepared: Prepared | None = None
+    image: np.ndarray | None  # as decoded (composed into the mosaic at this size)
+    prepared: Prepared | None = None  # at the working size, like the features
     features: Features | None = None
     skip: str | None = None
+    H_frame_to_work: np.ndarray | None = None  # None: the working size is the frame's
 
 
 @dataclass(frozen=True)
@@ -151,6 +154,8 @@ class MosaicBuilder:
         self._segments: list[_Segment] = []
         self._gate = FrameGate(config.gating)
         self._overlay = OverlayMask(config.preprocess)
+        self._max_side = config.preprocess.max_side_px
+        self._S: np.ndarray | None = None  # H_frame_to_work of the video's frames (one size)
         self._started = time.perf_counter()
 
     @property
@@ -186,15 +191,16 @@ class MosaicBuilder:
         if image is None:
             return Extracted(record, None, skip=error or "frame could not be decoded")
         timer = _Timer(record)
-        prepared = timer.run("preprocess", prepare, image, self.config.preprocess)
+        work, S = timer.run("preprocess", to_working_size, image, self._max_side)
+        prepared = timer.run("preprocess", prepare, work, self.config.preprocess)
         gate_reason = self._gate(prepared)  # before overlay masking: sharpness of the whole view
-        prepared = timer.run("preprocess", self._overlay, image, prepared)
+        prepared = timer.run("preprocess", self._overlay, work, prepared)
         if gate_reason is not None:
-            return Extracted(record, image, prepared, skip=gate_reason)
+            return Extracted(record, image, prepared, skip=gate_reason, H_frame_to_work=S)
         detected = timer.run("detect", self.extractor.detect, prepared)
         features = timer.run("describe", self.extractor.describe, prepared, detected)
         record.n_keypoints = len(features)
-        return Extracted(record, image, prepared, features)
+        return Extracted(record, image, prepared, features, H_frame_to_work=S)
 
     def register(self, extracted: Extracted) -> FrameRecord:
         """Track and compose an extracted frame (frames in order), report it to the viewer."""
@@ -204,6 +210,7 @@ class MosaicBuilder:
             return self._skip(record, extracted.skip or "no features", image, prepared)
         assert image is not None and prepared is not None
         features = extracted.features
+        self._S = extracted.H_frame_to_work
         timer = _Timer(record)
         segment = self._segment or self._new_segment()
         track = segment.tracker.track(record.index, features, prepared.gray.shape, timer)
@@ -221,14 +228,39 @@ class MosaicBuilder:
                 record,
                 image,
                 prepared,
-                features,
+                self._in_frame(features),
                 track.matches,
                 track.registration,
                 self._segment.canvas if self._segment else None,
-                track.reference,
+                None if track.reference is None else self._in_frame(track.reference),
             )
         )
         return record
+
+    # The tracker works at the working size; the canvas, the records and the viewer in the
+    # pixels of the frames as decoded.
+
+    def _to_frame(self, H_work_to_ref_work: np.ndarray) -> np.ndarray:
+        """H_frame_to_ref (decoded pixels) of a homography between working-size frames."""
+        if self._S is None:
+            return H_work_to_ref_work
+        H = np.linalg.inv(self._S) @ H_work_to_ref_work @ self._S
+        return H / H[2, 2]
+
+    def _in_frame(self, features: Features) -> Features:
+        """Features with their points in the pixels of the decoded frame."""
+        if self._S is None:
+            return features
+        sx, sy = self._S[0, 0], self._S[1, 1]
+        xy = ((features.xy + 0.5) / np.array([sx, sy], np.float32) - 0.5).astype(np.float32)
+        return dataclasses.replace(features, xy=xy)
+
+    def _frame_mask(self, prepared: Prepared, image: np.ndarray) -> np.ndarray:
+        """The working-size mask at the decoded frame's size."""
+        if prepared.mask.shape == image.shape[:2]:
+            return prepared.mask
+        h, w = image.shape[:2]
+        return cv2.resize(prepared.mask, (w, h), interpolation=cv2.INTER_NEAREST)
 
     def _skip(
         self,
@@ -254,12 +286,14 @@ class MosaicBuilder:
     ) -> str | None:
         """Put the frame on the canvas and let the tracker take it; or say why not."""
         assert track.H_frame_to_ref is not None
+        H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
+        mask = self._frame_mask(prepared, image)
         try:
-            timer.run("compose", segment.canvas.add, image, track.H_frame_to_ref, prepared.mask)
+            timer.run("compose", segment.canvas.add, image, H_frame_to_ref, mask)
         except CanvasLimitError as exc:
             return str(exc)
         segment.tracker.commit(record.index, features, prepared.gray.shape, track)
-        record.status, record.H_frame_to_ref = REGISTERED, track.H_frame_to_ref
+        record.status, record.H_frame_to_ref = REGISTERED, H_frame_to_ref
         record.segment = segment.index
         segment.records.append(record)
         return None
@@ -290,7 +324,7 @@ class MosaicBuilder:
         if segment.tracker.refine() is None:
             return
         poses = {r.index: segment.tracker.pose(r.index) for r in segment.records}
-        segment.refined_poses = {k: H for k, H in poses.items() if H is not None}
+        segment.refined_poses = {k: self._to_frame(H) for k, H in poses.items() if H is not None}
 
     def _rerender(self, reread: Reread) -> None:
         """Render refined segments again from the video, one more pass over its frames."""
@@ -303,8 +337,9 @@ class MosaicBuilder:
             segment = todo[owner[index]]
             H = segment.refined_poses[index]  # type: ignore[index]
             # the overlay estimate of the whole video: no overlay pixels from any frame
-            mask = self._overlay.apply(prepare(image, self.config.preprocess)).mask
-            canvases[segment.index].add(image, H, mask)
+            work, _ = to_working_size(image, self._max_side)
+            prepared = self._overlay.apply(prepare(work, self.config.preprocess))
+            canvases[segment.index].add(image, H, self._frame_mask(prepared, image))
         for k, canvas in canvases.items():
             segment = todo[k]
             if canvas.n_frames != len(segment.records):
@@ -427,6 +462,7 @@ def build_report(
         "fps": round(len(records) / elapsed, 2) if elapsed > 0 else 0.0,
         "mean_stage_ms": stage_ms,
         "detector": builder.extractor.detector.name,
+        "working_scale": 1.0 if builder._S is None else round(float(builder._S[0, 0]), 4),
         "strategy": builder.config.pipeline.strategy,
         "tracking": _tracking_summary(builder),
         "on_failure": builder.config.pipeline.on_failure,

@@ -68,6 +68,26 @@ def field_of_view_mask(gray: np.ndarray, threshold: int, erode_px: int) -> np.nd
     return mask
 
 
+def to_working_size(image: np.ndarray, max_side_px: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The frame resized so that its longer side is at most `max_side_px` (0: any size), and
+    H_frame_to_work (None when it is unchanged).
+
+    Registration runs at a working resolution near the one the detector was trained and the
+    pixel-valued settings were chosen at (descriptor size, NMS window, RANSAC threshold, ...),
+    so that a camera with 2x the pixels sees the same structures at the same scale, and is not
+    4x slower.
+    """
+    h, w = image.shape[:2]
+    if max_side_px <= 0 or max(h, w) <= max_side_px:
+        return image, None
+    scale = max_side_px / max(h, w)
+    size = (max(round(w * scale), 1), max(round(h * scale), 1))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    sx, sy = size[0] / w, size[1] / h  # pixel centres: x' = (x + 0.5) * s - 0.5
+    H_frame_to_work = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0, 0, 1]])
+    return small, H_frame_to_work
+
+
 def prepare(image: np.ndarray, config: PreprocessConfig) -> Prepared:
     """Apply the configured pre-processing to one BGR (or grey) uint8 frame."""
     gray = to_gray(image, config.green_channel)

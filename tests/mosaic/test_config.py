@@ -33,6 +33,8 @@ def test_missing_keys_take_defaults(tmp_path):
         ("[features]\ndetect_scale = 0\n", "detect_scale must be > 0"),
         ("[features]\ndevice = 'gpu'\n", "device must be one of cpu, cuda"),
         ("[pipeline]\noverlap = 'yes'\n", "overlap must be bool"),
+        ("[preprocess]\nmax_side_px = 10\n", r"max_side_px must be 0 \(off\) or >= 64"),
+        ("[features]\nprecision = 'half'\n", "precision must be one of float32"),
         ("not toml [", "not valid TOML"),
         ("", "empty"),
     ],

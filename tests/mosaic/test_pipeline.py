@@ -265,3 +265,47 @@ def test_burned_in_overlay_is_left_out_of_the_rendered_mosaic(tmp_path):
         both = cv2.erode(both.view(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
         errors[on] = float(np.abs(image - reference).max(axis=2)[both].mean())
     assert errors[True] < 0.5 * errors[False], errors  # measured: 0.66 vs 12.0 grey levels
+
+
+def _upscaled(folder: Path, gt: list[np.ndarray], out: Path, k: int = 2):
+    """The same video from a camera with k x the pixels (same field of view), and its truth."""
+    out.mkdir()
+    for path in sorted(folder.glob("*.png")):
+        image = cv2.imread(str(path))
+        cv2.imwrite(str(out / path.name), cv2.resize(image, None, fx=k, fy=k, interpolation=3))
+    H_big_to_small = np.array([[1 / k, 0, 0.5 / k - 0.5], [0, 1 / k, 0.5 / k - 0.5], [0, 0, 1]])
+    return out, [H @ H_big_to_small for H in gt]
+
+
+def test_large_frames_register_at_the_working_size_and_compose_at_full_size(video, tmp_path):
+    """A 2x camera registered at half size gives what the 1x camera gives, in its own pixels."""
+    folder, gt = video
+    big, gt_big = _upscaled(folder, gt, tmp_path / "big")
+    small_result = _run(folder, _config())
+    result = _run(big, with_overrides(_config(), preprocess={"max_side_px": 400}))
+    summary = result.report["summary"]
+    assert summary["working_scale"] == 0.5 and summary["registered"] == 24
+    frames = result.report["frames"]
+    H0 = np.array(frames[0]["H_to_canvas"])
+    errors = []
+    for entry in frames[1:]:
+        H_i_to_0 = np.linalg.inv(H0) @ np.array(entry["H_to_canvas"])
+        H_true = np.linalg.inv(gt_big[0]) @ gt_big[entry["index"]]
+        errors.append(corner_error(H_i_to_0, H_true, (2 * SIZE[0], 2 * SIZE[1])))
+    assert np.mean(errors) < 6.0 and np.max(errors) < 12.0, errors  # the 1x bounds, doubled
+    # the mosaic is composed from the full-size frames: twice the 1x mosaic, and its pixels
+    # are the frames'
+    mosaic = result.main.image
+    np.testing.assert_allclose(
+        mosaic.shape[:2], 2 * np.array(small_result.main.image.shape[:2]), atol=8
+    )
+    frame = cv2.imread(str(sorted(big.glob("*.png"))[12]))
+    H = np.array(frames[12]["H_to_canvas"])
+    warped = cv2.warpPerspective(frame, H, (mosaic.shape[1], mosaic.shape[0]))
+    inside = cv2.warpPerspective(np.full(frame.shape[:2], 255, np.uint8), H, warped.shape[1::-1])
+    inside = cv2.erode(inside, np.ones((31, 31), np.uint8)) > 0
+    assert np.median(np.abs(mosaic.astype(int) - warped.astype(int))[inside]) < 6
+    # with the working size off, the same frames register at full size (slower, same answer)
+    full = _run(big, with_overrides(_config(), preprocess={"max_side_px": 0}))
+    assert full.report["summary"]["working_scale"] == 1.0
+    assert full.report["summary"]["registered"] == 24

@@ -3,7 +3,7 @@ import numpy as np
 
 from glampoints.synthetic import frame_preprocess
 from mosaic.config import PreprocessConfig
-from mosaic.preprocess import OverlayMask, field_of_view_mask, prepare
+from mosaic.preprocess import OverlayMask, field_of_view_mask, prepare, to_working_size
 
 
 def _disc_frame(h=200, w=300, radius=80):
@@ -118,3 +118,15 @@ def test_overlay_mask_ignores_a_static_patch_that_looks_like_its_surroundings():
         prepared = prepare(bgr, config)
         masked = overlay(bgr, prepared)
     np.testing.assert_array_equal(masked.mask, prepared.mask)
+
+
+def test_working_size_keeps_small_frames_and_maps_pixel_centres_of_large_ones():
+    image = np.zeros((300, 400, 3), np.uint8)
+    same, H = to_working_size(image, 800)
+    assert same is image and H is None
+    assert to_working_size(image, 0)[1] is None  # off
+    small, H = to_working_size(np.zeros((600, 1000, 3), np.uint8), 500)
+    assert small.shape == (300, 500, 3)
+    # the centre of pixel (0, 0) and of the last pixel map to the centres of the small ones' span
+    corners = np.array([[-0.5, -0.5, 1], [999.5, 599.5, 1]]) @ H.T
+    np.testing.assert_allclose(corners[:, :2], [[-0.5, -0.5], [499.5, 299.5]])
