@@ -488,14 +488,21 @@ def build_report(
 def register_pair(
     fixed: np.ndarray, moving: np.ndarray, config: Config, extractor: FeatureExtractor
 ) -> Registration:
-    """Register one image pair: the result's `H_cur_to_prev` maps `moving` into `fixed`."""
-    prepared_fixed = prepare(fixed, config.preprocess)
-    prepared_moving = prepare(moving, config.preprocess)
-    features_fixed = extractor(prepared_fixed)
-    features_moving = extractor(prepared_moving)
+    """Register one image pair: the result's `H_cur_to_prev` maps `moving` into `fixed` (full
+    size pixels; each image is registered at its working size, `[preprocess] max_side_px`)."""
+    fixed_work, S_fixed = to_working_size(fixed, config.preprocess.max_side_px)
+    moving_work, S_moving = to_working_size(moving, config.preprocess.max_side_px)
+    features_fixed = extractor(prepare(fixed_work, config.preprocess))
+    features_moving = extractor(prepare(moving_work, config.preprocess))
     matches = match_descriptors(
         features_fixed.descriptors, features_moving.descriptors, config.matching
     )
-    return estimate_homography(
+    reg = estimate_homography(
         features_moving.xy[matches.idx_b], features_fixed.xy[matches.idx_a], config.registration
     )
+    if reg.H_cur_to_prev is None or (S_fixed is None and S_moving is None):
+        return reg
+    I3 = np.eye(3)
+    H = np.linalg.inv(I3 if S_fixed is None else S_fixed) @ reg.H_cur_to_prev
+    H = H @ (I3 if S_moving is None else S_moving)
+    return dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])

@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 
@@ -181,3 +182,18 @@ def test_glampoints_precision_auto_takes_bfloat16_only_where_the_cpu_has_it(
 def test_glampoints_precision_reaches_the_network():
     extractor = FeatureExtractor(FeaturesConfig(detector="glampoints", precision="bfloat16"))
     assert extractor.detector._model.precision == "bfloat16"
+
+
+def test_register_pair_of_large_images_answers_in_full_size_pixels(pair):
+    """Images larger than the working size register downscaled; the homography is still the
+    full-size one (here: both images 2x, registered at 0.5)."""
+    a, b, H_b_to_a = pair
+    big_a, big_b = (cv2.resize(x, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for x in (a, b))
+    S = np.array([[2.0, 0, 0.5], [0, 2.0, 0.5], [0, 0, 1]])  # small -> big pixel centres
+    H_big = S @ H_b_to_a @ np.linalg.inv(S)
+    config = with_overrides(
+        Config(), features={"detector": "sift"}, preprocess={"max_side_px": 480}
+    )
+    reg = register_pair(big_a, big_b, config, FeatureExtractor(config.features))
+    assert reg.ok, reg.reason
+    assert corner_error(reg.H_cur_to_prev, H_big, (960, 640)) < 4.0  # 2 px at the small size
