@@ -48,6 +48,17 @@ def _run(
     return builder.finish()
 
 
+def _errors_to_first(frames: list[dict], gt: list[np.ndarray], size: tuple[int, int]) -> list:
+    """Corner error of each reported frame->first-frame homography against the truth."""
+    H0 = np.array(frames[0]["H_to_canvas"])
+    errors = []
+    for entry in frames[1:]:
+        H_i_to_0 = np.linalg.inv(H0) @ np.array(entry["H_to_canvas"])
+        H_true = np.linalg.inv(gt[0]) @ gt[entry["index"]]
+        errors.append(corner_error(H_i_to_0, H_true, size))
+    return errors
+
+
 @pytest.fixture(scope="module")
 def video(tmp_path_factory):
     return _frames_folder(tmp_path_factory.mktemp("video"), 24)
@@ -61,13 +72,7 @@ def test_chained_homographies_follow_the_ground_truth(video):
     assert summary["registered"] == 24
     assert summary["frames_until_failure"] == 24
     assert summary["segments"] == 1
-    frames = result.report["frames"]
-    H0 = np.array(frames[0]["H_to_canvas"])
-    errors = []
-    for entry in frames[1:]:
-        H_i_to_0 = np.linalg.inv(H0) @ np.array(entry["H_to_canvas"])
-        H_true = np.linalg.inv(gt[0]) @ gt[entry["index"]]
-        errors.append(corner_error(H_i_to_0, H_true, SIZE))
+    errors = _errors_to_first(result.report["frames"], gt, SIZE)
     assert np.mean(errors) < 3.0, errors
     assert np.max(errors) < 6.0, errors
 
@@ -286,12 +291,7 @@ def test_large_frames_register_at_the_working_size_and_compose_at_full_size(vide
     summary = result.report["summary"]
     assert summary["working_scale"] == 0.5 and summary["registered"] == 24
     frames = result.report["frames"]
-    H0 = np.array(frames[0]["H_to_canvas"])
-    errors = []
-    for entry in frames[1:]:
-        H_i_to_0 = np.linalg.inv(H0) @ np.array(entry["H_to_canvas"])
-        H_true = np.linalg.inv(gt_big[0]) @ gt_big[entry["index"]]
-        errors.append(corner_error(H_i_to_0, H_true, (2 * SIZE[0], 2 * SIZE[1])))
+    errors = _errors_to_first(frames, gt_big, (2 * SIZE[0], 2 * SIZE[1]))
     assert np.mean(errors) < 6.0 and np.max(errors) < 12.0, errors  # the 1x bounds, doubled
     # the mosaic is composed from the full-size frames: twice the 1x mosaic, and its pixels
     # are the frames'

@@ -81,14 +81,20 @@ def test_overlay_mask_removes_a_static_cross_but_not_a_static_camera():
     np.testing.assert_array_equal(unmoved.mask, prepare(np.dstack([base] * 3), config).mask)
 
 
-def test_overlay_mask_follows_an_overlay_that_goes_away():
-    """Static until frame 9, then the box shows retina: once re-searched, it is no overlay."""
-    rng = np.random.default_rng(1)
-    config = PreprocessConfig()
-    overlay = OverlayMask(config)
+def _retina_and_box(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A random texture standing in for retina (240x320) and a 40x60 box in its middle."""
+    rng = np.random.default_rng(seed)
     base = cv2.GaussianBlur(rng.integers(0, 256, (240, 320), dtype=np.uint8), (0, 0), 3)
     box = np.zeros((240, 320), bool)
     box[100:140, 140:200] = True
+    return base, box
+
+
+def test_overlay_mask_follows_an_overlay_that_goes_away():
+    """Static until frame 9, then the box shows retina: once re-searched, it is no overlay."""
+    config = PreprocessConfig()
+    overlay = OverlayMask(config)
+    base, box = _retina_and_box(1)
     masked_per_frame = []
     for k in range(OverlayMask.MIN_FRAMES + 2 * OverlayMask.REFRESH_FRAMES):
         frame = np.roll(base, 3 * k, axis=1)
@@ -105,12 +111,9 @@ def test_overlay_mask_follows_an_overlay_that_goes_away():
 def test_overlay_mask_ignores_a_static_patch_that_looks_like_its_surroundings():
     """A flat patch of retina that a slow view has not moved over yet is static too; unlike a
     drawn overlay it has the grey of what surrounds it, so it keeps its keypoints."""
-    rng = np.random.default_rng(2)
     config = PreprocessConfig()
     overlay = OverlayMask(config)
-    base = cv2.GaussianBlur(rng.integers(0, 256, (240, 320), dtype=np.uint8), (0, 0), 3)
-    box = np.zeros((240, 320), bool)
-    box[100:140, 140:200] = True
+    base, box = _retina_and_box(2)
     for k in range(OverlayMask.MIN_FRAMES + 1):
         frame = np.roll(base, 3 * k, axis=1)
         frame[box] = round(float(np.mean(base)))  # flat, static, the retina's mean grey
