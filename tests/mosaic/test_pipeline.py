@@ -309,3 +309,42 @@ def test_large_frames_register_at_the_working_size_and_compose_at_full_size(vide
     full = _run(big, with_overrides(_config(), preprocess={"max_side_px": 0}))
     assert full.report["summary"]["working_scale"] == 1.0
     assert full.report["summary"]["registered"] == 24
+
+
+class _Events:
+    """A viewer that keeps what it is shown."""
+
+    def __init__(self):
+        self.events = []
+
+    def frame(self, event) -> None:
+        self.events.append(event)
+
+    def finish(self, report, mosaic=None) -> None:
+        pass
+
+
+def test_viewer_sees_keypoints_and_matches_in_the_pixels_of_the_frame_it_shows(video, tmp_path):
+    """Registered at half size, drawn on the full-size frame: points must land on the same
+    structures, so the matched points of frame k and their partners in the reference agree
+    with the reported homography in full-size pixels."""
+    folder, gt = video
+    big, _ = _upscaled(folder, gt, tmp_path / "big")
+    viewer = _Events()
+    config = with_overrides(_config(strategy="chain"), preprocess={"max_side_px": 400})
+    builder = MosaicBuilder(config, viewer=viewer)
+    with open_frames(big) as frames:
+        for frame in frames:
+            builder.process(frame.index, frame.image, frame.error)
+    event = viewer.events[5]
+    assert event.image.shape[:2] == (2 * SIZE[1], 2 * SIZE[0])
+    xy = event.features.xy
+    assert xy[:, 0].max() > 1.5 * SIZE[0] and xy[:, 1].max() > 1.5 * SIZE[1]  # full-size spread
+    inl = event.registration.inliers
+    cur = xy[event.matches.idx_b][inl]
+    ref = event.reference.xy[event.matches.idx_a][inl]  # chain: the previous frame's points
+    H_cur_to_ref = (
+        np.linalg.inv(viewer.events[4].record.H_frame_to_ref) @ event.record.H_frame_to_ref
+    )
+    mapped = cv2.perspectiveTransform(cur[None].astype(np.float64), H_cur_to_ref)[0]
+    assert np.median(np.linalg.norm(mapped - ref, axis=1)) < 2.0  # ~1 px at half size, doubled
