@@ -210,6 +210,12 @@ class MosaicBuilder:
             return self._skip(record, extracted.skip or "no features", image, prepared)
         assert image is not None and prepared is not None
         features = extracted.features
+        if self._S is None and extracted.H_frame_to_work is not None:
+            h, w = image.shape[:2]
+            log.info(
+                "frames of %dx%d are registered at %dx%d ([preprocess] max_side_px = %d)",
+                w, h, prepared.gray.shape[1], prepared.gray.shape[0], self._max_side,
+            )  # fmt: skip
         self._S = extracted.H_frame_to_work
         timer = _Timer(record)
         segment = self._segment or self._new_segment()
