@@ -106,6 +106,12 @@ def train(
         typer.Option(min=1.0, help="keypoint diameter of the reward's root-SIFT descriptor"),
     ] = 10.0,
     lr: Annotated[float, typer.Option(min=0.0, help="Adam learning rate (paper: 1e-3)")] = 1e-3,
+    jpeg_p: Annotated[
+        float,
+        typer.Option(
+            min=0.0, max=1.0, help="probability of JPEG-compressing each crop (not the paper's)"
+        ),
+    ] = 0.0,
     verbose: Annotated[bool, typer.Option("-v", "--verbose")] = False,
 ) -> None:
     """Train GLAMpoints on synthetic pairs from the base images (the paper's schedule)."""
@@ -127,6 +133,7 @@ def train(
         init=str(init) if init else "",
         descriptor_size_px=descriptor_size,
         lr=lr,
+        jpeg_p=jpeg_p,
     )
     try:
         summary = run_training(cfg, resume=resume)

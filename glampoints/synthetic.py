@@ -121,17 +121,24 @@ def _illumination(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarra
 
 
 AUGMENTATIONS = ("noise", "contrast", "illumination", "gamma", "motion_blur", "inverse")
+JPEG_QUALITY_MIN, JPEG_QUALITY_MAX = 15, 60  # the optional compression change (see augment)
 
 
 def augment(
-    image: np.ndarray, rng: np.random.Generator, p: float = 0.5, p_inverse: float = 0.1
+    image: np.ndarray,
+    rng: np.random.Generator,
+    p: float = 0.5,
+    p_inverse: float = 0.1,
+    p_jpeg: float = 0.0,
 ) -> np.ndarray:
     """Apply a random subset of the paper's appearance changes to a grey uint8 image.
 
     Each of illumination, contrast, gamma, motion blur and gaussian noise is chosen with
     probability `p` (applied in that order), then the image is inverted with probability
     `p_inverse`; inversion is kept rare because upright SIFT cannot match an inverted image
-    to a normal one, so such pairs give no reward.
+    to a normal one, so such pairs give no reward. With probability `p_jpeg` (not in the paper;
+    0 draws nothing, so the other changes stay as they were) the result is JPEG-compressed at a
+    random quality in [JPEG_QUALITY_MIN, JPEG_QUALITY_MAX], like frames of a compressed video.
     """
     chosen = rng.random(6) < np.array([p, p, p, p, p, p_inverse])
     use_illum, use_contrast, use_gamma, use_blur, use_noise, use_inverse = chosen
@@ -150,6 +157,10 @@ def augment(
     out = np.clip(out + 0.5, 0.0, 255.0).astype(np.uint8)
     if use_inverse:
         out = 255 - out
+    if p_jpeg > 0 and rng.random() < p_jpeg:
+        quality = int(rng.integers(JPEG_QUALITY_MIN, JPEG_QUALITY_MAX + 1))
+        encoded = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, quality])[1]
+        out = cv2.imdecode(encoded, cv2.IMREAD_GRAYSCALE)
     return out
 
 

@@ -92,6 +92,7 @@ class TrainConfig:
     num_threads: int = 2
     preprocess: bool = True  # green channel of the base images (else plain grey)
     preprocess_crops: bool = False  # the app's CLAHE + bilateral on every crop (see above)
+    jpeg_p: float = 0.0  # probability of JPEG-compressing each augmented crop (not the paper's)
     init: str = ""  # weights a new run starts from ("" = random initialisation)
     max_steps: int | None = None  # stop after this many steps in all (smoke runs)
     val_pairs_per_image: int = 4
@@ -431,7 +432,7 @@ def _batch(
         k = item % cfg.pairs_per_image
         rng = np.random.default_rng([cfg.seed, 1, epoch, i, k])
         I1, I2, H = make_pair(bases[i], rng, cfg.crop)
-        I1, I2 = augment(I1, rng), augment(I2, rng)
+        I1, I2 = augment(I1, rng, p_jpeg=cfg.jpeg_p), augment(I2, rng, p_jpeg=cfg.jpeg_p)
         if cfg.preprocess_crops:
             I1, I2 = frame_preprocess(I1), frame_preprocess(I2)
         I1s.append(I1)

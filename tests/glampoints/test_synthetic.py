@@ -128,3 +128,21 @@ def test_green_clahe_uses_the_green_channel():
     clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8))
     np.testing.assert_array_equal(green_clahe(bgr), clahe.apply(np.ascontiguousarray(bgr[..., 1])))
     np.testing.assert_array_equal(green_clahe(bgr[..., 0]), clahe.apply(bgr[..., 0].copy()))
+
+
+def test_jpeg_augmentation_is_opt_in_and_leaves_8x8_blocks():
+    rng_image = np.random.default_rng(4)
+    image = cv2.GaussianBlur(rng_image.integers(0, 256, (128, 128), dtype=np.uint8), (0, 0), 2)
+    # off (the default): nothing extra is drawn, the other changes are exactly as before
+    np.testing.assert_array_equal(
+        augment(image, np.random.default_rng(9)), augment(image, np.random.default_rng(9), p_jpeg=0)
+    )
+    plain = augment(image, np.random.default_rng(9), p=0.0, p_inverse=0.0)
+    jpeg = augment(image, np.random.default_rng(9), p=0.0, p_inverse=0.0, p_jpeg=1.0)
+    assert not np.array_equal(plain, jpeg)
+
+    def step_at_block_edges(x):  # mean |horizontal step| across 8-px block edges vs inside
+        d = np.abs(np.diff(x.astype(np.float32), axis=1))
+        return d[:, 7::8].mean() / d.mean()
+
+    assert step_at_block_edges(jpeg) > step_at_block_edges(plain) + 0.1
