@@ -41,7 +41,7 @@ from mosaic.features import DETECTORS, FeatureExtractor
 from mosaic.io import IMAGE_READ_SUFFIXES, open_frames, write_json
 from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicBuilder
-from mosaic.preprocess import prepare
+from mosaic.preprocess import prepare, scale_matrix
 from mosaic.registration import estimate_homography
 from mosaic.synth import corner_error, gt_path_for, load_ground_truth, relative_homographies
 
@@ -125,13 +125,6 @@ class PairResult:
     error_px: float  # FIRE protocol: mean point error at full resolution; inf when failed
     time_ms: float  # detection + description of both images
     H_est_1_to_2: list[list[float]] | None = field(default=None, repr=False)  # full resolution
-
-
-def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> np.ndarray:
-    """H_full_to_scaled of a resize: pixel centres map as x' = (x + 0.5) * s - 0.5."""
-    sy = shape_scaled[0] / shape_full[0]
-    sx = shape_scaled[1] / shape_full[1]
-    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
 def _resize(image: np.ndarray, scale: float) -> np.ndarray:

@@ -26,7 +26,7 @@ import numpy as np
 from mosaic.compose import Canvas
 from mosaic.config import Config, config_to_dict
 from mosaic.errors import CanvasLimitError
-from mosaic.features import FeatureExtractor, Features
+from mosaic.features import FeatureExtractor, Features, to_frame_pixels
 from mosaic.io import Frame, prefetch
 from mosaic.matching import Matches, match_descriptors
 from mosaic.preprocess import FrameGate, OverlayMask, Prepared, prepare, to_working_size
@@ -257,9 +257,8 @@ class MosaicBuilder:
         """Features with their points in the pixels of the decoded frame."""
         if self._S is None:
             return features
-        sx, sy = self._S[0, 0], self._S[1, 1]
-        xy = ((features.xy + 0.5) / np.array([sx, sy], np.float32) - 0.5).astype(np.float32)
-        return dataclasses.replace(features, xy=xy)
+        factor = np.array([1.0 / self._S[0, 0], 1.0 / self._S[1, 1]], np.float32)
+        return dataclasses.replace(features, xy=to_frame_pixels(features.xy, factor))
 
     def _frame_mask(self, prepared: Prepared, image: np.ndarray) -> np.ndarray:
         """The working-size mask at the decoded frame's size."""
@@ -508,7 +507,6 @@ def register_pair(
     )
     if reg.H_cur_to_prev is None or (S_fixed is None and S_moving is None):
         return reg
-    I3 = np.eye(3)
-    H = np.linalg.inv(I3 if S_fixed is None else S_fixed) @ reg.H_cur_to_prev
-    H = H @ (I3 if S_moving is None else S_moving)
+    S_fixed, S_moving = (np.eye(3) if S is None else S for S in (S_fixed, S_moving))
+    H = np.linalg.inv(S_fixed) @ reg.H_cur_to_prev @ S_moving
     return dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])

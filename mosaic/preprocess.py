@@ -68,6 +68,13 @@ def field_of_view_mask(gray: np.ndarray, threshold: int, erode_px: int) -> np.nd
     return mask
 
 
+def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> np.ndarray:
+    """H_full_to_scaled of a resize: pixel centres map as x' = (x + 0.5) * s - 0.5."""
+    sy = shape_scaled[0] / shape_full[0]
+    sx = shape_scaled[1] / shape_full[1]
+    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
 def to_working_size(image: np.ndarray, max_side_px: int) -> tuple[np.ndarray, np.ndarray | None]:
     """The frame resized so that its longer side is at most `max_side_px` (0: any size), and
     H_frame_to_work (None when it is unchanged).
@@ -83,9 +90,7 @@ def to_working_size(image: np.ndarray, max_side_px: int) -> tuple[np.ndarray, np
     scale = max_side_px / max(h, w)
     size = (max(round(w * scale), 1), max(round(h * scale), 1))
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    sx, sy = size[0] / w, size[1] / h  # pixel centres: x' = (x + 0.5) * s - 0.5
-    H_frame_to_work = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0, 0, 1]])
-    return small, H_frame_to_work
+    return small, scale_matrix(image.shape, small.shape)
 
 
 def prepare(image: np.ndarray, config: PreprocessConfig) -> Prepared:
