@@ -37,6 +37,7 @@ _SLACK_FRACTION = 0.25  # ... or this fraction of the needed extent, whichever i
 _INVALID_WEIGHT = 1.0e4
 _EDGE_EPS = 1e-6  # tolerance when rounding a warped bounding box to whole pixels
 _MIN_W = 1e-9  # homogeneous coordinate under which a corner counts as sent to infinity
+_MIN_SAMPLED_WEIGHT = 1e-6  # resampled accumulated weight above which a pixel counts as covered
 
 
 def _translation(tx: float, ty: float) -> np.ndarray:
@@ -109,6 +110,56 @@ class Canvas:
         """uint8 mask (H, W) of the canvas: 255 where at least one frame contributed, else 0."""
         _, weight_c = self._content_views()
         return (weight_c > 0).astype(np.uint8) * 255
+
+    def content_in_frame(
+        self,
+        H_frame_to_ref: np.ndarray,
+        frame_shape: tuple[int, int],
+        H_frame_to_out: np.ndarray | None = None,
+        channel: int = 1,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The blended canvas seen from a frame: (values float32 (h, w), valid bool (h, w)).
+
+        Pixel (x, y) of the output shows the canvas where frame pixel inv(H_frame_to_out) @
+        (x, y) lands through `H_frame_to_ref`; `H_frame_to_out` (default identity, output of
+        `frame_shape` (h, w)) resamples, e.g. `preprocess.scale_matrix` for a smaller copy
+        whose shape is then `frame_shape`. `channel` picks one colour channel (1: green of
+        BGR; ignored on a 1-channel canvas). Valid where some frame contributed: the
+        accumulated sum and weight are sampled bilinearly and divided, so the values are a
+        weighted mean of covered pixels only and nothing of the empty canvas leaks in.
+        """
+        h, w = int(frame_shape[0]), int(frame_shape[1])
+        values = np.zeros((h, w), np.float32)
+        valid = np.zeros((h, w), bool)
+        if self._content is None or h == 0 or w == 0:
+            return values, valid
+        H_out_to_frame = np.eye(3) if H_frame_to_out is None else np.linalg.inv(H_frame_to_out)
+        H_out_to_ref = np.asarray(H_frame_to_ref, np.float64) @ H_out_to_frame
+        # Only the content under the frame's footprint is sampled (the buffer may be large).
+        corners = np.array([[-1, -1, 1], [w, -1, 1], [-1, h, 1], [w, h, 1]], float)
+        mapped = corners @ H_out_to_ref.T
+        if not np.all(np.isfinite(mapped)) or np.any(mapped[:, 2] <= _MIN_W):
+            return values, valid
+        xy = mapped[:, :2] / mapped[:, 2:]
+        cx0, cy0, cx1, cy1 = self._content
+        x0 = max(int(np.floor(xy[:, 0].min())) - 1, cx0)
+        y0 = max(int(np.floor(xy[:, 1].min())) - 1, cy0)
+        x1 = min(int(np.ceil(xy[:, 0].max())) + 2, cx1)
+        y1 = min(int(np.ceil(xy[:, 1].max())) + 2, cy1)
+        if x1 <= x0 or y1 <= y0:
+            return values, valid
+        rows = slice(y0 - self._buf_y0, y1 - self._buf_y0)
+        cols = slice(x0 - self._buf_x0, x1 - self._buf_x0)
+        sum_roi, weight_roi = self._sum[rows, cols], self._weight[rows, cols]
+        M = _translation(-float(x0), -float(y0)) @ H_out_to_ref  # output -> ROI pixels
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        warped_sum = cv2.warpPerspective(sum_roi, M, (w, h), flags=flags)
+        weight = cv2.warpPerspective(weight_roi, M, (w, h), flags=flags)
+        if warped_sum.ndim == 3:
+            warped_sum = warped_sum[..., min(channel, warped_sum.shape[2] - 1)]
+        valid = weight > _MIN_SAMPLED_WEIGHT
+        np.divide(warped_sum, weight, out=values, where=valid)
+        return values, valid
 
     # ----------------------------------------------------------------------------- adding
 

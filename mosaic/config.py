@@ -74,6 +74,9 @@ class RegistrationConfig:
     confidence: float = 0.995
     min_inliers: int = 20  # fewer RANSAC inliers than this is a failure (a wrong placement
     # smears the mosaic; a skipped frame costs nothing)
+    model: str = "auto"  # auto (least expected corner error) | translation | similarity | affine
+    # | homography; the chain strategy takes auto as the paper's homography
+    refine: bool = True  # re-weighted least squares of the model on all matches within threshold
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,8 @@ class ComposeConfig:
     blend: str = "feather"  # feather | average | last
     max_canvas_px: int = 8000  # cap on either side of the canvas
     feather_px: int = 40  # distance from the frame edge over which feather weights ramp up
+    quality_threshold: float = 0.5  # a frame agreeing less with the mosaic under it (NCC of
+    # band-passed green, mosaic.quality) is flagged in the report as likely misregistered
 
 
 @dataclass(frozen=True)
@@ -101,6 +106,9 @@ class KeyframesConfig:
     """Keyframe strategy: register to keyframes, relocalise, close loops, refine globally."""
 
     min_overlap: float = 0.6  # promote a new keyframe when overlap with the active one drops below
+    promote_min_inliers: int = 40  # ... or when a frame registers to it with fewer inliers
+    promote_inlier_ratio: float = 0.4  # ... or with fewer than this x its best inlier count
+    promote_coverage_ratio: float = 0.4  # ... or with an inlier coverage under this x its best
     max_keyframes: int = 200  # keyframes whose features stay in memory (oldest dropped first)
     relocalise_candidates: int = 4  # other keyframes tried before a frame is declared failed
     loop_closure: bool = True  # match new keyframes against older overlapping ones too
@@ -143,6 +151,7 @@ CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
         "usac_accurate",
         "usac_fast",
     ),
+    ("registration", "model"): ("auto", "translation", "similarity", "affine", "homography"),
     ("compose", "blend"): ("feather", "average", "last"),
     ("pipeline", "on_failure"): ("stop", "skip", "restart"),
     ("pipeline", "strategy"): ("keyframes", "chain"),
@@ -161,7 +170,11 @@ POSITIVE = {
     ("keyframes", "max_keyframes"),
 }
 
-AT_MOST_ONE = {("features", "detect_scale"), ("features", "extra_scale")}
+AT_MOST_ONE = {
+    ("features", "detect_scale"),
+    ("features", "extra_scale"),
+    ("compose", "quality_threshold"),
+}
 AT_LEAST_IF_SET = {("preprocess", "max_side_px"): 64}  # 0 turns it off
 
 

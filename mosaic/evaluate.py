@@ -10,7 +10,9 @@ error (mean ground-truth point error at full resolution, inf when failed), from 
 over thresholds 1..25 px, its 0..25 integral variant, per-category AUCs and mAUC follow.
 
 Videos (`evaluate_video`): `MosaicBuilder` runs the video with `on_failure = "skip"`; frames are
-checked against the synthetic ground truth (`*.gt.json`) when there is one.
+checked against the synthetic ground truth (`*.gt.json`) when there is one: each frame's placement
+against the first frame (corner error, drift) and against the frame it was registered to (step
+error); the report's motion models are counted per video.
 
 Outputs (`write_pair_outputs`, `write_video_outputs`): CSV and JSON tables, per-pair/per-video
 rows and PNG plots. Pure metric definitions live in `glampoints.metrics`, not here.
@@ -50,6 +52,7 @@ log = logging.getLogger(__name__)
 EPS_PX = 3.0  # correctness radius of a keypoint / match (paper: 3 px)
 FIRE_SCALE = 0.15  # the paper's FIRE protocol: 2912 px images downscaled to 15 % for detection
 ACCURATE_CORNER_ERROR_PX = 10.0  # a video frame further than this from the truth is a failure
+MOTION_MODELS = ("translation", "similarity", "affine", "homography")  # the report's "model"
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv")
 CLASSES = ("failed", "inaccurate", "acceptable")
 
@@ -580,7 +583,11 @@ class VideoResult:
     drift_px_per_frame: float  # slope of the corner error against the frame index
     mean_inliers: float
     fps: float
+    step_median_px: float = math.nan  # corner error of each frame relative to its reference
+    step_p90_px: float = math.nan
+    model_counts: dict[str, int] = field(default_factory=dict)  # registered frames per model
     errors: list[tuple[int, float]] = field(default_factory=list, repr=False)  # (index, px)
+    step_errors: list[tuple[int, float]] = field(default_factory=list, repr=False)
 
 
 def find_videos(paths: Sequence[str | Path]) -> list[Path]:
@@ -637,6 +644,69 @@ def _video_errors(
     return errors
 
 
+def _frame_references(frames: list[dict[str, Any]]) -> dict[int, int]:
+    """{frame index: index of the frame it was registered against} for registered frames.
+
+    The report's `"reference"` is used when it names a placed frame of the same segment. When it
+    is missing or None (reports written before it existed) for a frame that is not its
+    segment's first, the previous registered frame of that segment stands in: exact for the
+    chain strategy, an approximation for keyframes. A segment's first frame has no reference.
+    """
+    placed = [f for f in frames if f["status"] == REGISTERED and f["H_to_canvas"] is not None]
+    segment_of = {f["index"]: f["segment"] for f in placed}
+    previous: dict[Any, int] = {}  # segment -> last registered frame index
+    references = {}
+    for f in placed:
+        ref = f.get("reference")
+        if ref is None:
+            ref = previous.get(f["segment"])
+        elif segment_of.get(ref, object()) != f["segment"] or ref == f["index"]:
+            log.warning("frame %d: reference %s is not a registered frame", f["index"], ref)
+            ref = None
+        if ref is not None:
+            references[f["index"]] = int(ref)
+        previous[f["segment"]] = f["index"]
+    return references
+
+
+def _step_errors(
+    frames: list[dict[str, Any]], gt: list[np.ndarray], size: tuple[int, int]
+) -> dict[int, float]:
+    """Corner error (px) of each registered frame's placement relative to its reference.
+
+    Estimate inv(P_ref) @ P_i (P = the report's H_to_canvas), truth inv(G_ref) @ G_i (G =
+    H_frame_to_source), both in full-size frame pixels; references from `_frame_references`.
+    """
+    poses = {
+        f["index"]: np.asarray(f["H_to_canvas"], np.float64)
+        for f in frames
+        if f["status"] == REGISTERED and f["H_to_canvas"] is not None
+    }
+    errors = {}
+    for index, ref in _frame_references(frames).items():
+        if max(index, ref) >= len(gt):
+            log.warning("frame %d or %d has no ground truth (%d frames)", index, ref, len(gt))
+            continue
+        H_est = np.linalg.solve(poses[ref], poses[index])
+        H_gt = np.linalg.solve(gt[ref], gt[index])
+        errors[index] = corner_error(H_est, H_gt, size)
+    return errors
+
+
+def _model_counts(frames: list[dict[str, Any]]) -> dict[str, int]:
+    """Registered frames per motion model (every model of MOTION_MODELS, 0 when unused).
+
+    Frames without a `"model"` (a segment's first frame, older reports) are not counted; a
+    model name outside MOTION_MODELS gets its own entry after them.
+    """
+    counts = dict.fromkeys(MOTION_MODELS, 0)
+    for f in frames:
+        model = f.get("model")
+        if f["status"] == REGISTERED and model is not None:
+            counts[model] = counts.get(model, 0) + 1
+    return counts
+
+
 def _leading_accurate(frames: list[dict[str, Any]], errors: dict[int, float] | None) -> int:
     """Registered (and accurate, when errors are given) frames from the start until a failure."""
     count = 0
@@ -689,8 +759,12 @@ def evaluate_video(
     frames, summary = report["frames"], report["summary"]
     gt_file = gt_path_for(path)
     errors: dict[int, float] | None = None
+    steps: dict[int, float] = {}
     if gt_file.is_file() and size is not None:
-        errors = _video_errors(frames, load_ground_truth(gt_file), size)
+        gt = load_ground_truth(gt_file)
+        errors = _video_errors(frames, gt, size)
+        steps = _step_errors(frames, gt, size)
+    step_values = np.array(list(steps.values()))
     decoded = max(summary["frames_read"] - summary["skipped"], 1)
     values = np.array(list(errors.values())) if errors else np.zeros(0)
     drift = math.nan
@@ -716,7 +790,11 @@ def evaluate_video(
         drift_px_per_frame=drift,
         mean_inliers=float(summary["mean_inliers"]),
         fps=float(summary["fps"]),
+        step_median_px=float(np.median(step_values)) if step_values.size else math.nan,
+        step_p90_px=float(np.percentile(step_values, 90)) if step_values.size else math.nan,
+        model_counts=_model_counts(frames),
         errors=sorted(errors.items()) if errors else [],
+        step_errors=sorted(steps.items()),
     )
 
 
@@ -729,6 +807,8 @@ VIDEO_MEAN_KEYS = (
     "mean_error_px",
     "max_error_px",
     "drift_px_per_frame",
+    "step_median_px",
+    "step_p90_px",
     "mean_inliers",
     "fps",
 )
@@ -743,8 +823,23 @@ VIDEO_COLUMNS = (
     ("mean_error_px", "error px", ".2f"),
     ("max_error_px", "max px", ".2f"),
     ("drift_px_per_frame", "drift px/fr", ".3f"),
+    ("step_median_px", "step med px", ".2f"),
+    ("step_p90_px", "step p90 px", ".2f"),
+    ("models", "models", ""),
     ("fps", "fps", ".1f"),
 )
+
+
+def _model_columns(counts: dict[str, float]) -> dict[str, float]:
+    """{"model_<name>": count} for the CSV, every model of MOTION_MODELS first (0 if absent)."""
+    merged = {**dict.fromkeys(MOTION_MODELS, 0), **counts}
+    return {f"model_{name}": n for name, n in merged.items()}
+
+
+def format_models(counts: dict[str, float], spec: str = "d") -> str | None:
+    """The models in use, abbreviated, e.g. "sim 80 / aff 10 / hom 9"; None when none was."""
+    used = [f"{name[:3]} {format(n, spec)}" for name, n in counts.items() if n]
+    return " / ".join(used) or None
 
 
 def summarize_videos(results: Sequence[VideoResult]) -> list[dict[str, Any]]:
@@ -754,6 +849,9 @@ def summarize_videos(results: Sequence[VideoResult]) -> list[dict[str, Any]]:
         rs = [r for r in results if r.detector == detector]
         row: dict[str, Any] = {"detector": detector, "videos": len(rs)}
         row.update({k: _nanmean(getattr(r, k) for r in rs) for k in VIDEO_MEAN_KEYS})
+        columns = [_model_columns(r.model_counts) for r in rs]
+        names = dict.fromkeys(n for c in columns for n in c)
+        row.update({n: float(np.mean([c.get(n, 0) for c in columns])) for n in names})
         rows.append(row)
     return rows
 
@@ -761,15 +859,26 @@ def summarize_videos(results: Sequence[VideoResult]) -> list[dict[str, Any]]:
 def format_video_tables(results: Sequence[VideoResult], summary: Sequence[dict[str, Any]]) -> str:
     """Per-video tables (one per detector) and the mean over videos."""
     per_video = [
-        {**dataclasses.asdict(r), "videos": 1, "detector": f"{r.detector} {Path(r.video).name}"}
+        {
+            **dataclasses.asdict(r),
+            "videos": 1,
+            "detector": f"{r.detector} {Path(r.video).name}",
+            "models": format_models(r.model_counts),
+        }
         for r in results
     ]
+    means = [{**row, "models": format_models(_summary_models(row), ".1f")} for row in summary]
     return (
-        "Per video\n"
+        "Per video (models: registered frames per motion model)\n"
         + format_table(per_video, VIDEO_COLUMNS)
         + "\n\nMean over videos\n"
-        + format_table(summary, VIDEO_COLUMNS)
+        + format_table(means, VIDEO_COLUMNS)
     )
+
+
+def _summary_models(row: dict[str, Any]) -> dict[str, float]:
+    """{model: mean count} back from a summary row's "model_<name>" entries."""
+    return {k[len("model_") :]: v for k, v in row.items() if k.startswith("model_")}
 
 
 def plot_videos(
@@ -812,6 +921,9 @@ def plot_videos(
     return [bars, curve]
 
 
+_VIDEO_ROW_EXCLUDED = ("errors", "step_errors", "model_counts")  # per-frame lists; a dict
+
+
 def write_video_outputs(
     results: Sequence[VideoResult],
     summary: Sequence[dict[str, Any]],
@@ -820,7 +932,13 @@ def write_video_outputs(
 ) -> list[Path]:
     """videos.csv (per video), video_summary.csv / video_evaluation.json and the plots."""
     out = _prepare_out(out_dir)
-    rows = [{k: v for k, v in dataclasses.asdict(r).items() if k != "errors"} for r in results]
+    rows = [
+        {
+            **{k: v for k, v in dataclasses.asdict(r).items() if k not in _VIDEO_ROW_EXCLUDED},
+            **_model_columns(r.model_counts),
+        }
+        for r in results
+    ]
     written = [write_csv(out / "videos.csv", rows), write_csv(out / "video_summary.csv", summary)]
     document = {
         "meta": meta or {},

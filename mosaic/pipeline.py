@@ -30,7 +30,8 @@ from mosaic.features import FeatureExtractor, Features, to_frame_pixels
 from mosaic.io import Frame, prefetch
 from mosaic.matching import Matches, match_descriptors
 from mosaic.preprocess import FrameGate, OverlayMask, Prepared, prepare, to_working_size
-from mosaic.registration import Registration, estimate_homography
+from mosaic.quality import frame_vs_canvas
+from mosaic.registration import MODELS, Registration, estimate_motion
 from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
 
@@ -53,6 +54,11 @@ class FrameRecord:
     n_matches: int = 0
     n_inliers: int = 0
     reproj_error_px: float = float("nan")
+    model: str | None = None  # motion model of the registration that placed it
+    coverage: float = float("nan")  # share of the frame inside its inliers' convex hull
+    reference: int | None = None  # input index of the frame it was registered against
+    quality: float = float("nan")  # agreement with the mosaic under it (mosaic.quality)
+    flagged: bool = False  # quality under [compose] quality_threshold: likely misregistered
     stage_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -224,6 +230,9 @@ class MosaicBuilder:
             record.n_matches = track.registration.n_matches
             record.n_inliers = track.registration.n_inliers
             record.reproj_error_px = track.registration.reproj_error_px
+            record.model = track.registration.model
+            record.coverage = track.registration.coverage
+            record.reference = track.reference_index
         reason = track.reason
         if reason is None:
             reason = self._place(segment, record, image, prepared, features, track, timer)
@@ -293,6 +302,10 @@ class MosaicBuilder:
         assert track.H_frame_to_ref is not None
         H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
         mask = self._frame_mask(prepared, image)
+        quality = float("nan")
+        if segment.canvas.n_frames:  # agreement with the frames already on the canvas
+            canvas = segment.canvas
+            quality = timer.run("compose", frame_vs_canvas, canvas, image, H_frame_to_ref, mask)
         try:
             timer.run("compose", segment.canvas.add, image, H_frame_to_ref, mask)
         except CanvasLimitError as exc:
@@ -300,8 +313,13 @@ class MosaicBuilder:
         segment.tracker.commit(record.index, features, prepared.gray.shape, track)
         record.status, record.H_frame_to_ref = REGISTERED, H_frame_to_ref
         record.segment = segment.index
+        self._set_quality(record, quality)
         segment.records.append(record)
         return None
+
+    def _set_quality(self, record: FrameRecord, quality: float) -> None:
+        record.quality = quality
+        record.flagged = bool(quality < self.config.compose.quality_threshold)  # NaN: False
 
     def _fail(
         self,
@@ -336,6 +354,7 @@ class MosaicBuilder:
         todo = {s.index: s for s in self._segments if s.refined_poses and s.records}
         owner = {r.index: s.index for s in todo.values() for r in s.records}
         canvases = {k: Canvas(self.config.compose) for k in todo}
+        quality: dict[int, float] = {}  # of the refined poses, against the re-rendered mosaic
         for index, image in reread():
             if index not in owner or image is None:
                 continue
@@ -344,7 +363,10 @@ class MosaicBuilder:
             # the overlay estimate of the whole video: no overlay pixels from any frame
             work, _ = to_working_size(image, self._max_side)
             prepared = self._overlay.apply(prepare(work, self.config.preprocess))
-            canvases[segment.index].add(image, H, self._frame_mask(prepared, image))
+            canvas, mask = canvases[segment.index], self._frame_mask(prepared, image)
+            if canvas.n_frames:
+                quality[index] = frame_vs_canvas(canvas, image, H, mask)
+            canvas.add(image, H, mask)
         for k, canvas in canvases.items():
             segment = todo[k]
             if canvas.n_frames != len(segment.records):
@@ -353,6 +375,7 @@ class MosaicBuilder:
             segment.canvas = canvas
             for record in segment.records:
                 record.H_frame_to_ref = segment.refined_poses[record.index]  # type: ignore[index]
+                self._set_quality(record, quality.get(record.index, float("nan")))
 
     def finish(self, interrupted: bool = False, reread: Reread | None = None) -> MosaicResult:
         """Refine, render the segment(s) and build the report (also after an interruption).
@@ -413,8 +436,14 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict
         "reproj_error_px": None
         if np.isnan(record.reproj_error_px)
         else round(record.reproj_error_px, 3),
+        "quality": None if np.isnan(record.quality) else round(record.quality, 3),
+        "flagged": record.flagged,
         "time_ms": round(record.time_ms, 2),
     }
+    if record.status == REGISTERED and record.reference is not None:
+        entry["reference"] = record.reference
+        entry["model"] = record.model
+        entry["coverage"] = None if np.isnan(record.coverage) else round(record.coverage, 3)
     if record.reason is not None:
         entry["reason"] = record.reason
     return entry
@@ -443,6 +472,7 @@ def build_report(
     by_index = {m.index: m for m in mosaics}
     statuses = [r.status for r in records]
     attempts = [r for r in records if r.status != SKIPPED and r.n_matches > 0]
+    scores = [r.quality for r in records if r.status == REGISTERED and not np.isnan(r.quality)]
     stage_ms = {
         stage: round(float(np.mean(vals)), 3)
         for stage in STAGES
@@ -463,12 +493,24 @@ def build_report(
         "mean_inliers": round(float(np.mean([r.n_inliers for r in attempts])), 2)
         if attempts
         else 0.0,
+        "quality": round(float(np.median(scores)), 3) if scores else None,
+        "quality_flagged": sum(r.flagged for r in records if r.status == REGISTERED),
         "total_time_s": round(elapsed, 3),
         "fps": round(len(records) / elapsed, 2) if elapsed > 0 else 0.0,
         "mean_stage_ms": stage_ms,
         "detector": builder.extractor.detector.name,
         "working_scale": 1.0 if builder._S is None else round(float(builder._S[0, 0]), 4),
         "strategy": builder.config.pipeline.strategy,
+        "models": {
+            m: n
+            for m in MODELS
+            if (
+                n := sum(
+                    r.model == m and r.reference is not None and r.status == REGISTERED
+                    for r in records
+                )
+            )
+        },
         "tracking": _tracking_summary(builder),
         "on_failure": builder.config.pipeline.on_failure,
         "stopped_at_failure": builder.stopped,
@@ -502,8 +544,11 @@ def register_pair(
     matches = match_descriptors(
         features_fixed.descriptors, features_moving.descriptors, config.matching
     )
-    reg = estimate_homography(
-        features_moving.xy[matches.idx_b], features_fixed.xy[matches.idx_a], config.registration
+    reg = estimate_motion(
+        features_moving.xy[matches.idx_b],
+        features_fixed.xy[matches.idx_a],
+        config.registration,
+        moving_work.shape[:2],
     )
     if reg.H_cur_to_prev is None or (S_fixed is None and S_moving is None):
         return reg

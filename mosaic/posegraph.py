@@ -1,8 +1,9 @@
-"""Global refinement of keyframe poses: a pose graph solved by robust least squares.
+"""Global refinement of frame poses: a pose graph solved by robust least squares.
 
-Unknowns are the homographies `H_kf_to_ref` of all keyframes but the first (the reference,
-fixed to identity). Each constraint is a pair of keyframes with matched inlier points; its
-residual is the transfer error of those points from one keyframe into the other. A soft-L1
+Unknowns are the homographies `H_node_to_ref` of all nodes (frames) but one (the reference,
+fixed). Each constraint is a pair of nodes with corresponding points (matched inliers, or the
+points a registration's chosen motion model predicts); its residual is the transfer error of
+those points from one node into the other, scaled by the constraint's weight. A soft-L1
 loss limits the pull of bad points; a loop closure that still disagrees with the solution by
 more than `max_loop_rms_px` is dropped and the graph solved again, so one wrong closure cannot
 bend the whole mosaic.
@@ -29,6 +30,7 @@ class Constraint:
     xy_a: np.ndarray  # (K, 2) float
     xy_b: np.ndarray  # (K, 2) float
     loop: bool = False  # a loop closure (may be dropped), not a tracking step
+    weight: float = 1.0  # residuals are multiplied by this (1 / expected error in px)
 
 
 @dataclass(frozen=True)
@@ -62,7 +64,7 @@ def _residuals(poses: dict[int, np.ndarray], constraints: list[Constraint]) -> n
     the solver no reward for shrinking the mosaic away from the fixed keyframe."""
     return np.concatenate(
         [
-            (_project(np.linalg.solve(poses[c.b], poses[c.a]), c.xy_a) - c.xy_b).ravel()
+            c.weight * (_project(np.linalg.solve(poses[c.b], poses[c.a]), c.xy_a) - c.xy_b).ravel()
             for c in constraints
         ]
     )
@@ -129,7 +131,9 @@ def refine_poses(
     refined, before, after = _solve(poses, constraints, fixed, loss_scale_px)
     rms_before = _rms(before)
     kept = [
-        c for c in constraints if not c.loop or _rms(_residuals(refined, [c])) <= max_loop_rms_px
+        c
+        for c in constraints
+        if not c.loop or _rms(_residuals(refined, [c])) / c.weight <= max_loop_rms_px
     ]
     dropped = len(constraints) - len(kept)
     if dropped:

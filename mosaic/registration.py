@@ -1,4 +1,16 @@
-"""Robust homography between two frames and the paper's rules that declare it failed."""
+"""Robust motion between two frames, the choice of motion model, and the paper's failure rules.
+
+`estimate_homography` is the paper's step: a RANSAC homography. `estimate_motion` is the
+pipeline's: on the same RANSAC consensus it fits a hierarchy of models (translation, similarity,
+affine, homography) and keeps the one expected to place the frame's corners best. A homography
+fitted to inliers that sit on one side of the frame (vessels on one side, a dark or featureless
+region on the other) extrapolates its perspective terms into the empty side; a similarity fitted
+to the same points does not. The criterion is the expected squared corner error of each model:
+its variance at the corners (the least-squares covariance, which grows where no inlier is) plus
+its bias there (how far it departs from the most general model, less the part explained by the
+two models' variances), i.e. Mallows' Cp evaluated where the error is measured. The chosen model
+is then refined by iteratively re-weighted least squares on all matches within the threshold.
+"""
 
 from __future__ import annotations
 
@@ -17,11 +29,14 @@ METHODS = {
     "usac_accurate": cv2.USAC_ACCURATE,
     "usac_fast": cv2.USAC_FAST,
 }
+MODELS = ("translation", "similarity", "affine", "homography")  # nested, fewest parameters first
+REFINE_ROUNDS = 3  # re-weighted least-squares rounds of the chosen model
+HUBER_PX = 1.0  # residual beyond which a match's weight falls as 1/residual
 
 
 @dataclass(frozen=True)
 class Registration:
-    """Outcome of registering the current frame to the previous one."""
+    """Outcome of registering the current frame to a reference frame."""
 
     H_cur_to_prev: np.ndarray | None  # 3x3 float64, None when failed
     n_matches: int
@@ -29,21 +44,37 @@ class Registration:
     inliers: np.ndarray  # (n_matches,) bool
     reproj_error_px: float  # mean transfer error of the inliers; nan when failed
     reason: str | None  # why it failed; None when registered
+    model: str = "homography"  # the motion model of H_cur_to_prev
+    coverage: float = float("nan")  # share of the current frame inside the inliers' hull
+    corner_sd_px: float = float("nan")  # expected corner error of the chosen model (1 sigma)
 
     @property
     def ok(self) -> bool:
         return self.reason is None
 
 
+def _failed(n: int, inliers: np.ndarray, reason: str, model: str = "homography") -> Registration:
+    return Registration(None, n, int(inliers.sum()), inliers, float("nan"), reason, model)
+
+
+def transfer_errors(H: np.ndarray, xy_cur: np.ndarray, xy_prev: np.ndarray) -> np.ndarray:
+    """Distance (px) between each current point mapped by `H` and its match."""
+    p = np.hstack([xy_cur.astype(np.float64), np.ones((len(xy_cur), 1))]) @ H.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(p[:, :2] / p[:, 2:] - xy_prev, axis=1)
+    return np.where(np.isfinite(err), err, np.inf)
+
+
 def estimate_homography(
     xy_cur: np.ndarray, xy_prev: np.ndarray, config: RegistrationConfig
 ) -> Registration:
-    """Homography mapping matched points of the current frame onto the previous one."""
+    """The paper's RANSAC homography mapping matched points of the current frame onto the
+    previous one (the pair evaluation's protocol)."""
     n = len(xy_cur)
     no_inliers = np.zeros(n, bool)
     reason = failure_reason(None, n) if n < 4 else None
     if reason is not None:
-        return Registration(None, n, 0, no_inliers, float("nan"), reason)
+        return _failed(n, no_inliers, reason)
     H, mask = cv2.findHomography(
         xy_cur.astype(np.float32),
         xy_prev.astype(np.float32),
@@ -58,9 +89,231 @@ def estimate_homography(
     if reason is None and n_inliers < config.min_inliers:
         reason = f"too few inliers ({n_inliers} < {config.min_inliers})"
     if reason is not None:
-        return Registration(None, n, n_inliers, inliers, float("nan"), reason)
+        return _failed(n, inliers, reason)
     H = H / H[2, 2]
-    ones = np.ones((n_inliers, 1))
-    mapped = np.hstack([xy_cur[inliers], ones]) @ H.T
-    err = np.linalg.norm(mapped[:, :2] / mapped[:, 2:] - xy_prev[inliers], axis=1)
+    err = transfer_errors(H, xy_cur[inliers], xy_prev[inliers])
     return Registration(H, n, n_inliers, inliers, float(err.mean()), None)
+
+
+# -- the model hierarchy ---------------------------------------------------------------------
+
+
+def _design(model: str, xy: np.ndarray) -> np.ndarray:
+    """(N, 2, k) derivative of the mapped points by the parameters of a linear model."""
+    n = len(xy)
+    x, y = xy[:, 0], xy[:, 1]
+    one, zero = np.ones(n), np.zeros(n)
+    if model == "translation":
+        rows = [[one, zero], [zero, one]]
+    elif model == "similarity":  # x' = a x - b y + tx, y' = b x + a y + ty
+        rows = [[x, -y, one, zero], [y, x, zero, one]]
+    else:  # affine
+        rows = [[x, y, one, zero, zero, zero], [zero, zero, zero, x, y, one]]
+    return np.stack([np.stack(r, axis=1) for r in rows], axis=1)
+
+
+def _linear_matrix(model: str, p: np.ndarray) -> np.ndarray:
+    if model == "translation":
+        return np.array([[1.0, 0, p[0]], [0, 1.0, p[1]], [0, 0, 1.0]])
+    if model == "similarity":
+        a, b, tx, ty = p
+        return np.array([[a, -b, tx], [b, a, ty], [0, 0, 1.0]])
+    return np.vstack([p.reshape(2, 3), [0, 0, 1.0]])
+
+
+def _homography_jacobian(H: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mapped points (N, 2) and their derivative by the 8 free entries of H (N, 2, 8)."""
+    x, y = xy[:, 0], xy[:, 1]
+    u = H[0, 0] * x + H[0, 1] * y + H[0, 2]
+    v = H[1, 0] * x + H[1, 1] * y + H[1, 2]
+    w = H[2, 0] * x + H[2, 1] * y + 1.0
+    px, py = u / w, v / w
+    zero = np.zeros_like(x)
+    J = np.stack(
+        [
+            np.stack([x / w, y / w, 1 / w, zero, zero, zero, -px * x / w, -px * y / w], 1),
+            np.stack([zero, zero, zero, x / w, y / w, 1 / w, -py * x / w, -py * y / w], 1),
+        ],
+        axis=1,
+    )
+    return np.stack([px, py], 1), J
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """A model fitted by weighted least squares in normalised coordinates."""
+
+    model: str
+    M: np.ndarray  # 3x3, normalised current -> normalised reference
+    JtJ_inv: np.ndarray  # (k, k) unscaled parameter covariance
+    rss: float  # weighted sum of squared residuals (normalised units)
+
+    def predict(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mapped points and the unscaled variance (trace of the 2x2 covariance) at each."""
+        if self.model == "homography":
+            mapped, A = _homography_jacobian(self.M, q)
+        else:
+            A = _design(self.model, q)
+            mapped = q @ self.M[:2, :2].T + self.M[:2, 2]
+        var = np.einsum("nik,kl,nil->n", A, self.JtJ_inv, A)
+        return mapped, var
+
+
+def _fit(model: str, a: np.ndarray, b: np.ndarray, w: np.ndarray, M0: np.ndarray) -> _Fit | None:
+    """Weighted least-squares fit of `model` mapping points a onto b (normalised units); the
+    homography by Gauss-Newton from M0."""
+    sw = np.sqrt(w)[:, None, None]
+    if model != "homography":
+        A = _design(model, a) * sw
+        k = A.shape[2]
+        A2, rhs = A.reshape(-1, k), (b[:, :, None] * sw).reshape(-1)
+        p, *_ = np.linalg.lstsq(A2, rhs, rcond=None)
+        JtJ = A2.T @ A2
+        M = _linear_matrix(model, p)
+        r = rhs - A2 @ p
+    else:
+        M = M0 / M0[2, 2]
+        for _ in range(5):
+            mapped, J = _homography_jacobian(M, a)
+            r = ((b - mapped)[:, :, None] * sw).reshape(-1)
+            J2 = (J * sw).reshape(-1, 8)
+            JtJ = J2.T @ J2
+            try:
+                step = np.linalg.solve(JtJ + 1e-9 * np.eye(8), J2.T @ r)
+            except np.linalg.LinAlgError:
+                return None
+            M = M + np.append(step, 0.0).reshape(3, 3)
+            if np.abs(step).max() < 1e-10:
+                break
+        mapped, J = _homography_jacobian(M, a)
+        r = ((b - mapped)[:, :, None] * sw).reshape(-1)
+        J2 = (J * sw).reshape(-1, 8)
+        JtJ = J2.T @ J2
+    try:
+        JtJ_inv = np.linalg.inv(JtJ)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.isfinite(M).all() or not np.isfinite(JtJ_inv).all():
+        return None
+    return _Fit(model, M, JtJ_inv, float(r @ r))
+
+
+def _normaliser(shape: tuple[int, int]) -> np.ndarray:
+    """A similarity taking frame pixels to coordinates centred on the frame, unit half-diagonal
+    (keeps each model class: a similarity stays a similarity)."""
+    h, w = shape
+    s = 2.0 / np.hypot(w, h)
+    return np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
+
+
+def _to_norm(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    return xy.astype(np.float64) * T[0, 0] + T[:2, 2]
+
+
+def select_model(
+    a: np.ndarray, b: np.ndarray, w: np.ndarray, M_h: np.ndarray, corners: np.ndarray
+) -> tuple[_Fit, float]:
+    """The model of the hierarchy with the least expected squared corner error (normalised
+    points a → b, weights w, the RANSAC homography M_h as a start); also its corner sd."""
+    fits = {m: _fit(m, a, b, w, M_h) for m in MODELS}
+    top = fits["homography"]
+    ok = {m: f for m, f in fits.items() if f is not None}
+    if top is None:  # degenerate for a homography: fall back on the richest linear model
+        richest = [m for m in MODELS if m in ok]
+        if not richest:
+            raise np.linalg.LinAlgError("no motion model could be fitted")
+        f = ok[richest[-1]]
+        return f, float("nan")
+    dof = max(2 * len(a) - 8, 1)
+    sigma2 = top.rss / dof  # noise of a point, from the most general model
+    top_xy, top_var = top.predict(corners)
+    best, best_cost = top, float(np.mean(sigma2 * top_var))
+    for m in MODELS[:-1]:
+        f = ok.get(m)
+        if f is None:
+            continue
+        xy, var = f.predict(corners)
+        diff2 = np.sum((xy - top_xy) ** 2, axis=1)
+        bias2 = np.maximum(diff2 - sigma2 * (top_var - var), 0.0)
+        cost = float(np.mean(bias2 + sigma2 * var))
+        if cost < best_cost:
+            best, best_cost = f, cost
+    return best, float(np.sqrt(best_cost))
+
+
+def estimate_motion(
+    xy_cur: np.ndarray,
+    xy_prev: np.ndarray,
+    config: RegistrationConfig,
+    shape: tuple[int, int],
+    model: str | None = None,
+) -> Registration:
+    """Motion mapping matched points of the current frame (of `shape` (h, w)) onto the
+    reference: RANSAC consensus, the model (`model`, else `[registration] model`; "auto"
+    selects), refined on all matches within the threshold; the paper's failure rules."""
+    model = model or config.model
+    n = len(xy_cur)
+    consensus = estimate_homography(xy_cur, xy_prev, config)
+    if consensus.H_cur_to_prev is None:
+        return consensus
+    if model == "homography" and not config.refine:
+        return consensus
+    T = _normaliser(shape)
+    a_all, b_all = _to_norm(T, xy_cur), _to_norm(T, xy_prev)
+    corners = _to_norm(T, np.array([[0, 0], [shape[1], 0], [shape[1], shape[0]], [0, shape[0]]]))
+    M = T @ consensus.H_cur_to_prev @ np.linalg.inv(T)
+    threshold = config.reproj_threshold_px * T[0, 0]
+    huber = HUBER_PX * T[0, 0]
+    inliers = consensus.inliers
+    w_all = np.ones(n)
+    fit: _Fit | None = None
+    corner_sd = float("nan")
+    try:
+        for round_ in range(REFINE_ROUNDS):
+            a, b, w = a_all[inliers], b_all[inliers], w_all[inliers]
+            if len(a) < 4:
+                break
+            if model == "auto" and round_ < 2:  # select on the consensus, then on its refinement
+                fit, corner_sd = select_model(a, b, w, M, corners)
+            else:
+                fit = _fit(fit.model if fit else model, a, b, w, M)
+                if fit is None:
+                    break
+            M = fit.M
+            err = transfer_errors(M, a_all, b_all)
+            inliers = err < threshold
+            w_all = np.where(err <= huber, 1.0, huber / np.maximum(err, 1e-12))
+    except np.linalg.LinAlgError:
+        fit = None
+    if fit is None:
+        return consensus
+    if model != "auto":
+        corner_sd = float("nan")
+    H = np.linalg.inv(T) @ fit.M @ T
+    H = H / H[2, 2]
+    n_inliers = int(inliers.sum())
+    reason = failure_reason(H, n)
+    if reason is None and n_inliers < config.min_inliers:
+        reason = f"too few inliers ({n_inliers} < {config.min_inliers})"
+    if reason is not None:
+        return _failed(n, inliers, reason, fit.model)
+    err = transfer_errors(H, xy_cur[inliers], xy_prev[inliers])
+    return Registration(
+        H,
+        n,
+        n_inliers,
+        inliers,
+        float(err.mean()),
+        None,
+        fit.model,
+        inlier_coverage(xy_cur[inliers], shape),
+        corner_sd / T[0, 0] if np.isfinite(corner_sd) else float("nan"),
+    )
+
+
+def inlier_coverage(xy: np.ndarray, shape: tuple[int, int]) -> float:
+    """Share of the frame (h, w) inside the convex hull of the points."""
+    if len(xy) < 3:
+        return 0.0
+    hull = cv2.convexHull(xy.astype(np.float32))
+    return float(cv2.contourArea(hull) / (shape[0] * shape[1]))

@@ -28,7 +28,7 @@ from mosaic.config import Config
 from mosaic.features import Features
 from mosaic.matching import Matches, match_descriptors
 from mosaic.posegraph import Constraint, Refinement, refine_poses
-from mosaic.registration import Registration, estimate_homography
+from mosaic.registration import Registration, estimate_motion
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,9 @@ class Track:
     keyframe: int | None = None  # keyframe id (keyframe strategy)
     relocalised: bool = False
     attempts: int = 0
+    reference_index: int | None = None  # input frame index of the reference
+    previous: Registration | None = None  # the frame against its predecessor (keyframes)
+    previous_matches: Matches | None = None
 
     @property
     def reason(self) -> str | None:
@@ -83,17 +86,24 @@ class Tracker(Protocol):
 
 
 def _register(
-    reference: Features, features: Features, config: Config, timer: Any
+    reference: Features,
+    features: Features,
+    config: Config,
+    timer: Any,
+    shape: tuple[int, int],
+    model: str | None = None,
 ) -> tuple[Matches, Registration]:
     matches = timer.run(
         "match", match_descriptors, reference.descriptors, features.descriptors, config.matching
     )
     registration = timer.run(
         "estimate",
-        estimate_homography,
+        estimate_motion,
         features.xy[matches.idx_b],
         reference.xy[matches.idx_a],
         config.registration,
+        shape,
+        model,
     )
     return matches, registration
 
@@ -106,19 +116,24 @@ class ChainTracker:
     def __init__(self, config: Config):
         self._config = config
         self._prev: Features | None = None
+        self._prev_index: int | None = None
         self._H_prev_to_ref = np.eye(3)
         self._poses: dict[int, np.ndarray] = {}
 
     def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
         if self._prev is None:
             return Track(np.eye(3))
-        matches, registration = _register(self._prev, features, self._config, timer)
+        model = "homography" if self._config.registration.model == "auto" else None
+        matches, registration = _register(self._prev, features, self._config, timer, shape, model)
         H = self._H_prev_to_ref @ registration.H_cur_to_prev if registration.ok else None
-        return Track(H, registration, matches, self._prev, attempts=1)
+        return Track(
+            H, registration, matches, self._prev, attempts=1, reference_index=self._prev_index
+        )
 
     def commit(self, index: int, features: Features, shape: tuple[int, int], track: Track) -> None:
         assert track.H_frame_to_ref is not None
         self._prev, self._H_prev_to_ref = features, track.H_frame_to_ref
+        self._prev_index = index
         self._poses[index] = track.H_frame_to_ref
 
     def refine(self) -> Refinement | None:
@@ -154,52 +169,48 @@ def overlap_fraction(poly_a: np.ndarray, poly_b: np.ndarray) -> float:
 
 @dataclass
 class Keyframe:
-    """A frame kept as a registration anchor: its features and its pose, not its pixels."""
+    """A frame kept as a registration anchor: its features, not its pixels."""
 
     id: int
     frame_index: int
-    features: Features | None  # None once dropped from memory (pose kept for refinement)
+    features: Features | None  # None once dropped from memory (its pose stays in the graph)
     shape: tuple[int, int]
     H_to_ref: np.ndarray
-
-    def footprint(self) -> np.ndarray:
-        return project(self.H_to_ref, corners(self.shape))
-
-
-@dataclass
-class _Placement:
-    keyframe: int
-    H_frame_to_kf: np.ndarray
+    peak_inliers: int = 0  # most inliers a frame registered to it has had
+    peak_coverage: float = 0.0  # largest inlier coverage a frame registered to it has had
 
 
 @dataclass
 class _Counters:
     keyframes: int = 0
     relocalised: int = 0
+    via_previous: int = 0
     loop_closures: int = 0
     loop_attempts: int = 0
     refinement: dict[str, float] = field(default_factory=dict)
 
 
 class KeyframeTracker:
-    """Keyframes, relocalisation, loop closure and pose-graph refinement."""
+    """Keyframes driven by match quality, frame-to-frame links, relocalisation, loop closure
+    and a pose graph over every placed frame."""
 
     name = "keyframes"
-    MAX_CONSTRAINT_POINTS = 40  # inlier pairs kept per keyframe pair for the pose graph
     RECENT_KEYFRAMES = 2  # keyframes this close in time are neighbours, not loop closures
     LOOP_CANDIDATES = 3  # older keyframes tried per new keyframe
     GOOD_INLIERS = 100  # a registration this strong is not compared with other keyframes
+    GRID = 3  # constraint points per side: the chosen model's prediction on a GRID x GRID grid
+    MIN_SD_PX = 1.0  # constraint weight = 1 / max(expected corner error, this)
 
     def __init__(self, config: Config):
         self._config = config
         self._kcfg = config.keyframes
         self._keyframes: OrderedDict[int, Keyframe] = OrderedDict()
         self._active: int | None = None
-        self._placements: dict[int, _Placement] = {}
+        self._poses: dict[int, np.ndarray] = {}  # H_frame_to_ref of every committed frame
         self._constraints: list[Constraint] = []
+        self._prev: tuple[int, Features] | None = None  # the last committed frame
         self._last_pose: np.ndarray | None = None
         self._counters = _Counters()
-        self._rng = np.random.default_rng(0)
         self._lost = False  # the last frame failed against every candidate
         self._lost_cursor = 0
 
@@ -208,7 +219,7 @@ class KeyframeTracker:
         """Fraction of the frame (placed by `H_frame_to_ref`) inside each live keyframe."""
         footprint = project(H_frame_to_ref, corners(shape))
         return {
-            kf.id: overlap_fraction(footprint, kf.footprint())
+            kf.id: overlap_fraction(footprint, project(kf.H_to_ref, corners(kf.shape)))
             for kf in self._keyframes.values()
             if kf.features is not None
         }
@@ -236,14 +247,22 @@ class KeyframeTracker:
     def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
         if not self._keyframes:
             return Track(np.eye(3))
+        previous = previous_matches = None
+        prev_is_keyframe = self._prev is not None and any(
+            kf.frame_index == self._prev[0] for kf in self._keyframes.values()
+        )
+        if self._prev is not None and not prev_is_keyframe:
+            previous_matches, previous = _register(
+                self._prev[1], features, self._config, timer, shape
+            )
         candidates = self._candidates(shape)
         first: Track | None = None
         best: Track | None = None
-        attempts = 0
         for kf in candidates:
-            attempts += 1
             assert kf.features is not None
-            matches, registration = _register(kf.features, features, self._config, timer)
+            matches, registration = _register(kf.features, features, self._config, timer, shape)
+            if kf.frame_index == (self._prev[0] if self._prev else None):
+                previous, previous_matches = registration, matches
             if not registration.ok:
                 if first is None:
                     first = Track(None, registration, matches, kf.features, kf.id)
@@ -256,36 +275,85 @@ class KeyframeTracker:
             # the next keyframe; a strong one is taken at once.
             if registration.n_inliers >= self.GOOD_INLIERS:
                 break
+        attempts = len(candidates) + (previous is not None and not prev_is_keyframe)
+        extra = dict(attempts=attempts, previous=previous, previous_matches=previous_matches)
         if best is not None:
             self._lost = False
-            # Relocalised: the keyframe tried first (the expected one) did not register.
-            return dataclasses.replace(best, relocalised=first is not None, attempts=attempts)
+            assert best.keyframe is not None
+            return dataclasses.replace(
+                best,
+                relocalised=first is not None,
+                reference_index=self._keyframes[best.keyframe].frame_index,
+                **extra,
+            )
+        if previous is not None and previous.ok and self._prev is not None:
+            # No keyframe registers, but the predecessor does: the frame keeps its place.
+            self._lost = False
+            H = self._poses[self._prev[0]] @ previous.H_cur_to_prev
+            return Track(
+                H,
+                previous,
+                previous_matches,
+                self._prev[1],
+                None,
+                reference_index=self._prev[0],
+                **extra,
+            )
         self._lost = True
         assert first is not None
-        return dataclasses.replace(first, attempts=len(candidates))
+        return dataclasses.replace(first, **extra)
 
     # -- committing ------------------------------------------------------------------------
     def commit(self, index: int, features: Features, shape: tuple[int, int], track: Track) -> None:
         assert track.H_frame_to_ref is not None
         self._last_pose = track.H_frame_to_ref
-        if track.keyframe is None:  # first frame of the segment
+        self._poses[index] = track.H_frame_to_ref
+        prev = self._prev
+        self._prev = (index, features)
+        if track.registration is None:  # first frame of the segment
             self._promote(index, features, shape, track.H_frame_to_ref)
             return
         if track.relocalised:
             self._counters.relocalised += 1
             log.info("frame %d relocalised on keyframe %d", index, track.keyframe)
+        if track.previous is not None and track.previous.ok and prev is not None:
+            self._add_constraint(index, prev[0], track.previous, shape)
+        if track.keyframe is None:
+            self._counters.via_previous += 1
+            log.info("frame %d placed by its predecessor only: new keyframe", index)
+            self._promote(index, features, shape, track.H_frame_to_ref)
+            return
         kf = self._keyframes[track.keyframe]
-        H_frame_to_kf = np.linalg.inv(kf.H_to_ref) @ track.H_frame_to_ref
-        self._placements[index] = _Placement(kf.id, H_frame_to_kf)
+        registration = track.registration
+        assert registration is not None
+        if kf.frame_index != (prev[0] if prev else None):  # else added as the previous link
+            self._add_constraint(index, kf.frame_index, registration, shape)
+        weak = self._weak(kf, registration)
+        kf.peak_inliers = max(kf.peak_inliers, registration.n_inliers)
+        if np.isfinite(registration.coverage):
+            kf.peak_coverage = max(kf.peak_coverage, registration.coverage)
         overlaps = self._overlaps(track.H_frame_to_ref, shape)
         best = max(overlaps, key=lambda k: (overlaps[k], k == kf.id))
-        if overlaps[best] >= self._kcfg.min_overlap:
+        if weak is None and overlaps[best] >= self._kcfg.min_overlap:
             self._active = best  # the next frame starts with the keyframe it overlaps most
             return
+        log.debug("frame %d becomes a keyframe: %s", index, weak or "overlap")
         new = self._promote(index, features, shape, track.H_frame_to_ref)
-        self._add_constraint(new.id, kf.id, track)
         if self._kcfg.loop_closure:
-            self._close_loops(new, kf.id)
+            self._close_loops(new, kf.id, shape)
+
+    def _weak(self, kf: Keyframe, registration: Registration) -> str | None:
+        """Why the keyframe no longer holds (its registrations decay), or None."""
+        k = self._kcfg
+        n = registration.n_inliers
+        if n < k.promote_min_inliers:
+            return f"{n} inliers < {k.promote_min_inliers}"
+        if kf.peak_inliers and n < k.promote_inlier_ratio * kf.peak_inliers:
+            return f"{n} inliers < {k.promote_inlier_ratio} x {kf.peak_inliers}"
+        coverage = registration.coverage
+        if kf.peak_coverage and coverage < k.promote_coverage_ratio * kf.peak_coverage:
+            return f"coverage {coverage:.2f} < {k.promote_coverage_ratio} x {kf.peak_coverage:.2f}"
+        return None
 
     def _promote(
         self, index: int, features: Features, shape: tuple[int, int], H_to_ref: np.ndarray
@@ -294,33 +362,38 @@ class KeyframeTracker:
         kf = Keyframe(next_id, index, features, shape, H_to_ref)
         self._keyframes[kf.id] = kf
         self._active = kf.id
-        self._placements[index] = _Placement(kf.id, np.eye(3))
         self._counters.keyframes += 1
         alive = [k for k in self._keyframes.values() if k.features is not None]
         if len(alive) > self._kcfg.max_keyframes:
             alive[0].features = None  # forget the oldest keyframe's features, keep its pose
         return kf
 
-    def _add_constraint(self, a: int, b: int, track: Track, loop: bool = False) -> None:
-        """Inlier pairs of a registration between keyframe a (the frame) and b (reference)."""
-        assert track.registration is not None and track.matches is not None
-        assert track.reference is not None
-        inl = track.registration.inliers
-        frame_xy = self._keyframes[a].features.xy[track.matches.idx_b[inl]]  # type: ignore[union-attr]
-        ref_xy = track.reference.xy[track.matches.idx_a[inl]]
-        if len(frame_xy) > self.MAX_CONSTRAINT_POINTS:
-            keep = self._rng.choice(len(frame_xy), self.MAX_CONSTRAINT_POINTS, replace=False)
-            frame_xy, ref_xy = frame_xy[keep], ref_xy[keep]
+    def _add_constraint(
+        self,
+        a: int,
+        b: int,
+        registration: Registration,
+        shape: tuple[int, int],
+        loop: bool = False,
+    ) -> None:
+        """Frame a registered onto frame b: the chosen model's prediction on a grid over a,
+        weighted by how well that model is expected to place the frame."""
+        assert registration.H_cur_to_prev is not None
+        h, w = shape
+        gx, gy = np.meshgrid(np.linspace(0, w, self.GRID), np.linspace(0, h, self.GRID))
+        xy_a = np.stack([gx.ravel(), gy.ravel()], 1)
+        sd = registration.corner_sd_px
+        weight = 1.0 / max(sd if np.isfinite(sd) else self.MIN_SD_PX, self.MIN_SD_PX)
         self._constraints.append(
-            Constraint(a, b, frame_xy.astype(np.float64), ref_xy.astype(np.float64), loop)
+            Constraint(a, b, xy_a, project(registration.H_cur_to_prev, xy_a), loop, weight)
         )
 
-    def _close_loops(self, new: Keyframe, registered_to: int) -> None:
+    def _close_loops(self, new: Keyframe, registered_to: int, shape: tuple[int, int]) -> None:
         """Match a new keyframe against older keyframes its footprint overlaps."""
         recent = set(list(self._keyframes)[-(self.RECENT_KEYFRAMES + 1) :]) | {registered_to}
-        footprint = new.footprint()
+        footprint = project(new.H_to_ref, corners(new.shape))
         scored = [
-            (overlap_fraction(footprint, kf.footprint()), kf)
+            (overlap_fraction(footprint, project(kf.H_to_ref, corners(kf.shape))), kf)
             for kf in self._keyframes.values()
             if kf.id not in recent and kf.features is not None
         ]
@@ -330,21 +403,20 @@ class KeyframeTracker:
         for _, old in scored[: self.LOOP_CANDIDATES]:
             assert old.features is not None
             self._counters.loop_attempts += 1
-            matches, registration = _register(old.features, new.features, self._config, _NoTimer)
+            _, registration = _register(old.features, new.features, self._config, _NoTimer, shape)
             if registration.ok:
-                track = Track(None, registration, matches, old.features, old.id)
-                self._add_constraint(new.id, old.id, track, loop=True)
+                self._add_constraint(new.frame_index, old.frame_index, registration, shape, True)
                 self._counters.loop_closures += 1
                 log.info("loop closure: keyframe %d <-> %d", new.id, old.id)
 
     # -- refinement ------------------------------------------------------------------------
     def refine(self) -> Refinement | None:
-        if not self._kcfg.refine or len(self._keyframes) < 2:
+        if not self._kcfg.refine or len(self._poses) < 2:
             return None
-        poses = {k: kf.H_to_ref for k, kf in self._keyframes.items()}
-        result = refine_poses(poses, self._constraints, fixed=min(self._keyframes))
-        for k, H in result.poses.items():
-            self._keyframes[k].H_to_ref = H
+        result = refine_poses(self._poses, self._constraints, fixed=min(self._poses))
+        self._poses.update(result.poses)
+        for kf in self._keyframes.values():
+            kf.H_to_ref = self._poses[kf.frame_index]
         self._counters.refinement = {
             "rms_before_px": round(result.rms_before_px, 3),
             "rms_after_px": round(result.rms_after_px, 3),
@@ -354,16 +426,14 @@ class KeyframeTracker:
         return result
 
     def pose(self, index: int) -> np.ndarray | None:
-        placement = self._placements.get(index)
-        if placement is None:
-            return None
-        return self._keyframes[placement.keyframe].H_to_ref @ placement.H_frame_to_kf
+        return self._poses.get(index)
 
     def stats(self) -> dict[str, Any]:
         c = self._counters
         return {
             "keyframes": c.keyframes,
             "relocalised": c.relocalised,
+            "placed_by_previous": c.via_previous,
             "loop_closures": c.loop_closures,
             "loop_attempts": c.loop_attempts,
             "refinement": c.refinement or None,

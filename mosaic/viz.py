@@ -13,9 +13,11 @@ Recording layout (timeline `frame`, sequence = frame index in the video):
     mosaic/canvas                mosaic canvas snapshot every `canvas_every` frames (and after the
                                  last one), JPEG, downscaled to `canvas_max_side`
     mosaic/outline               the frame's outline on the latest canvas snapshot
-    metrics/...                  keypoints, matches, inliers, reproj_error_px, ms/<stage>,
+    metrics/...                  keypoints, matches, inliers, reproj_error_px, quality
+                                 (agreement with the mosaic, mosaic.quality), ms/<stage>,
                                  ms/total, ms/viewer (this sink's own cost), fps
-    log/status                   one text entry per frame: registered / failed (reason) / skipped
+    log/status                   one text entry per frame: registered / failed (reason) / skipped;
+                                 a registered frame under [compose] quality_threshold is FLAGGED
     log/python/...               Python `logging` records of the `mosaic` loggers
     run/config, run/video        static: the run's config (TOML) and the input's metadata
     run/report                   static, at the end: the report summary
@@ -174,9 +176,12 @@ def _status_text(event: FrameEvent) -> str:
         return f"{head}: {record.reason}"
     if record.n_matches == 0:
         return f"{head}: reference of segment {record.segment}, {record.n_keypoints} keypoints"
+    if record.flagged:
+        head = f"{head}, FLAGGED (disagrees with the mosaic)"
+    quality = "" if math.isnan(record.quality) else f", quality {record.quality:.2f}"
     return (
         f"{head}: {record.n_inliers}/{record.n_matches} inliers, "
-        f"{record.reproj_error_px:.2f} px, {record.time_ms:.0f} ms"
+        f"{record.reproj_error_px:.2f} px{quality}, {record.time_ms:.0f} ms"
     )
 
 
@@ -296,6 +301,7 @@ class RerunViewer:
             "matches": (240, 160, 40),
             "inliers": (40, 210, 80),
             "reproj_error_px": (70, 130, 230),
+            "quality": (250, 140, 60),
             "fps": (200, 80, 200),
             "ms/total": (230, 230, 230),
             "ms/viewer": (250, 220, 60),
@@ -328,7 +334,7 @@ class RerunViewer:
         else:
             self._last_H_frame_to_ref = None
             rec.log("mosaic/outline", rr.Clear(recursive=False))
-        level = _LEVELS.get(record.status, "INFO")
+        level = "WARN" if record.flagged else _LEVELS.get(record.status, "INFO")
         rec.log("log/status", rr.TextLog(_status_text(event), level=level))
         self._log_metrics(event)
         self._n_events += 1
@@ -400,6 +406,7 @@ class RerunViewer:
             "matches": record.n_matches,
             "inliers": record.n_inliers,
             "reproj_error_px": record.reproj_error_px,
+            "quality": record.quality,
             "fps": 1.0 / self._dt_ema if self._dt_ema > 0 else math.nan,
             "ms/total": record.time_ms,
         } | {f"ms/{stage}": ms for stage, ms in record.stage_ms.items()}
@@ -514,6 +521,7 @@ def make_blueprint() -> Any:
                     rrb.TimeSeriesView(origin="metrics", contents=counts, name="keypoints"),
                     rrb.TimeSeriesView(origin="metrics/ms", name="ms per stage"),
                     rrb.TimeSeriesView(origin="metrics/reproj_error_px", name="reproj error"),
+                    rrb.TimeSeriesView(origin="metrics/quality", name="quality"),
                     rrb.TimeSeriesView(origin="metrics/fps", name="fps"),
                 ),
                 row_shares=[3, 2],

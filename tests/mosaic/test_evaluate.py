@@ -19,12 +19,20 @@ from mosaic.config import Config, with_overrides
 from mosaic.datasets import Pair
 from mosaic.errors import ConfigError
 from mosaic.evaluate import (
+    VideoResult,
+    _frame_references,
     _leading_accurate,
+    _model_counts,
+    _step_errors,
     _video_errors,
     evaluate_pair,
+    format_models,
+    format_video_tables,
     make_extractors,
     parse_detectors,
     scale_matrix,
+    summarize_videos,
+    write_video_outputs,
 )
 from mosaic.io import sample_image_path
 from mosaic.synth import SynthParams, relative_homographies, write_synthetic_video
@@ -143,6 +151,146 @@ def test_video_errors_and_frames_until_failure_by_hand():
     assert _leading_accurate(frames, errors) == 1
 
 
+def _rigid(angle_deg: float, tx: float, ty: float) -> np.ndarray:
+    a = np.deg2rad(angle_deg)
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, tx], [s, c, ty], [0, 0, 1.0]])
+
+
+def _step_fixture():
+    """Ten frames over two segments with exact poses, except frame 2 placed 8 px off in x.
+
+    Returns (frames, gt, size, expected step errors): frame 3 is registered to frame 2 and frame
+    5 to frame 2 (both inherit its 8 px), frame 6 to frame 0 (exact); frame 7 and 9 have no
+    "reference" (older reports), so the previous registered frame of their segment stands in.
+    """
+    gt = [_rigid(2.0 * i, 7.0 * i, -3.0 * i) for i in range(10)]
+    rel = relative_homographies(gt)
+    canvas = [_rigid(0, 50.0, 20.0), _rigid(5.0, 400.0, 300.0)]  # per segment
+    shift = _rigid(0, 8.0, 0)  # 8 px in frame 2's own pixels
+
+    def entry(i, segment, reference, model, status="registered", off=None):
+        pose = canvas[segment] @ np.linalg.solve(gt[8 if segment else 0], gt[i])
+        pose = pose if off is None else pose @ off
+        f = {"index": i, "status": status, "segment": segment, "H_to_canvas": pose.tolist()}
+        if status != "registered":
+            f.update(segment=None, H_to_canvas=None)
+        if reference != "absent":
+            f["reference"] = reference
+        if model != "absent":
+            f["model"] = model
+        return f
+
+    frames = [
+        entry(0, 0, None, None),
+        entry(1, 0, 0, "similarity"),
+        entry(2, 0, 1, "similarity", off=shift),
+        entry(3, 0, 2, "affine"),
+        entry(4, 0, None, None, status="failed"),
+        entry(5, 0, 2, "homography"),
+        entry(6, 0, 0, "similarity"),
+        entry(7, 0, "absent", "absent"),
+        entry(8, 1, None, None),  # a new segment: no reference
+        entry(9, 1, "absent", "translation"),
+    ]
+    np.testing.assert_allclose(frames[1]["H_to_canvas"], canvas[0] @ rel[1])
+    expected = {1: 0.0, 2: 8.0, 3: 8.0, 5: 8.0, 6: 0.0, 7: 0.0, 9: 0.0}
+    return frames, gt, (64, 48), expected
+
+
+def test_step_errors_against_each_frames_reference():
+    frames, gt, size, expected = _step_fixture()
+    assert _frame_references(frames) == {1: 0, 2: 1, 3: 2, 5: 2, 6: 0, 7: 6, 9: 8}
+    assert _step_errors(frames, gt, size) == pytest.approx(expected, abs=1e-9)
+    # Frame -> first frame: only frame 2 is off; frames registered to it were placed right.
+    errors = _video_errors(frames, gt, size)
+    assert errors == pytest.approx({0: 0, 1: 0, 2: 8, 3: 0, 5: 0, 6: 0, 7: 0}, abs=1e-9)
+
+
+def test_step_errors_of_older_reports_use_the_previous_frame():
+    frames, gt, size, _ = _step_fixture()
+    for f in frames:
+        f.pop("reference", None)
+        f.pop("model", None)
+    assert _frame_references(frames) == {1: 0, 2: 1, 3: 2, 5: 3, 6: 5, 7: 6, 9: 8}
+    steps = _step_errors(frames, gt, size)
+    assert steps == pytest.approx({1: 0, 2: 8, 3: 8, 5: 0, 6: 0, 7: 0, 9: 0}, abs=1e-9)
+    assert _model_counts(frames) == {
+        "translation": 0,
+        "similarity": 0,
+        "affine": 0,
+        "homography": 0,
+    }
+
+
+def test_model_counts_of_registered_frames():
+    frames, _, _, _ = _step_fixture()
+    frames[4]["model"] = "homography"  # frame 4 failed: not counted
+    counts = _model_counts(frames)
+    assert counts == {"translation": 1, "similarity": 3, "affine": 1, "homography": 1}
+    assert format_models(counts) == "tra 1 / sim 3 / aff 1 / hom 1"
+    assert format_models(dict.fromkeys(counts, 0)) is None
+
+
+def _video_result(detector: str, **values) -> VideoResult:
+    base = dict.fromkeys(
+        ("registered_fraction", "accurate_fraction", "mean_error_px", "median_error_px"), 1.0
+    )
+    base.update(max_error_px=1.0, drift_px_per_frame=0.0, mean_inliers=50.0, fps=10.0)
+    counts = dict(frames=10, registered=10, failed=0, skipped=0, frames_until_failure=10)
+    return VideoResult(
+        detector=detector,
+        video=f"/videos/{detector.replace('/', '_')}.mp4",
+        has_ground_truth=True,
+        frames_until_failure_pipeline=10,
+        **counts,
+        **{**base, **values},
+    )
+
+
+def test_video_tables_and_files_carry_step_errors_and_models(tmp_path):
+    results = [
+        _video_result(
+            "sift/chain",
+            step_median_px=1.0,
+            step_p90_px=3.0,
+            model_counts={"similarity": 8, "affine": 1, "homography": 0},
+        ),
+        _video_result(
+            "sift/chain",
+            step_median_px=2.0,
+            step_p90_px=5.0,
+            model_counts={"similarity": 6, "homography": 3},
+        ),
+        _video_result("orb/chain"),  # an older report: no references to score, no models
+    ]
+    summary = summarize_videos(results)
+    sift, orb = summary
+    assert sift["step_median_px"] == 1.5 and sift["step_p90_px"] == 4.0
+    assert sift["model_similarity"] == 7.0 and sift["model_affine"] == 0.5
+    assert sift["model_homography"] == 1.5 and sift["model_translation"] == 0.0
+    assert math.isnan(orb["step_median_px"]) and orb["model_similarity"] == 0.0
+
+    text = format_video_tables(results, summary)
+    assert "step med px" in text and "step p90 px" in text
+    assert "sim 8 / aff 1" in text and "sim 6 / hom 3" in text
+    assert "sim 7.0 / aff 0.5 / hom 1.5" in text  # the mean over videos
+
+    write_video_outputs(results, summary, tmp_path)
+    with (tmp_path / "videos.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["step_p90_px"] for r in rows] == ["3", "5", ""]
+    assert [r["model_similarity"] for r in rows] == ["8", "6", "0"]
+    assert [r["model_translation"] for r in rows] == ["0", "0", "0"]
+    assert "model_counts" not in rows[0] and "step_errors" not in rows[0]
+    with (tmp_path / "video_summary.csv").open() as fh:
+        assert next(csv.DictReader(fh))["model_homography"] == "1.5"
+    document = json.loads((tmp_path / "video_evaluation.json").read_text())
+    assert document["videos"][1]["model_counts"] == {"similarity": 6, "homography": 3}
+    assert document["videos"][2]["model_counts"] == {}
+    assert document["summary"][0]["step_median_px"] == 1.5
+
+
 @pytest.fixture(scope="module")
 def small_video(tmp_path_factory):
     """Six clean 240x160 frames with exact ground truth, as a folder of PNGs."""
@@ -172,6 +320,10 @@ def test_video_evaluation_end_to_end(small_video, tmp_path):
     assert with_truth["mean_error_px"] < 2.0
     assert abs(with_truth["drift_px_per_frame"]) < 1.0
     assert [i for i, _ in with_truth["errors"]] == list(range(6))
+    assert [i for i, _ in with_truth["step_errors"]] == list(range(1, 6))  # frame 0: no reference
+    assert 0.0 <= with_truth["step_median_px"] <= with_truth["step_p90_px"] < 2.0
+    assert sum(with_truth["model_counts"].values()) == 5  # frames 1..5; frame 0 has no model
+    assert without["step_median_px"] is None and without["step_errors"] == []
     assert without["frames_until_failure"] == without["frames_until_failure_pipeline"] == 6
     assert without["mean_error_px"] is None  # nan: nothing to compare with
     for name in ("videos.csv", "video_summary.csv", "video_frames_until_failure.png"):
