@@ -7,9 +7,11 @@ fitted to inliers that sit on one side of the frame (vessels on one side, a dark
 region on the other) extrapolates its perspective terms into the empty side; a similarity fitted
 to the same points does not. The criterion is the expected squared corner error of each model:
 its variance at the corners (the least-squares covariance, which grows where no inlier is) plus
-its bias there (how far it departs from the most general model, less the part explained by the
-two models' variances), i.e. Mallows' Cp evaluated where the error is measured. The chosen model
-is then refined by iteratively re-weighted least squares on all matches within the threshold.
+its bias there. A model whose residuals are not significantly worse than the homography's (a
+nested chi-square test) has none; otherwise the bias is how far it departs from the homography
+at the corners, less what the two models' variances explain (Mallows' Cp where the error is
+measured). Parameters are charged by the test, coverage is rewarded by the variances. The
+chosen model is then refined by re-weighted least squares on all matches within the threshold.
 """
 
 from __future__ import annotations
@@ -30,8 +32,13 @@ METHODS = {
     "usac_fast": cv2.USAC_FAST,
 }
 MODELS = ("translation", "similarity", "affine", "homography")  # nested, fewest parameters first
+N_PARAMS = {"translation": 2, "similarity": 4, "affine": 6, "homography": 8}
 REFINE_ROUNDS = 3  # re-weighted least-squares rounds of the chosen model
 HUBER_PX = 1.0  # residual beyond which a match's weight falls as 1/residual
+# A simpler model whose extra residual (in units of the richer model's noise) stays under this
+# bound of its chi-square law (k + 5 sqrt(2k), beyond the 0.999 quantile for k = 2-6) is
+# adequate: it has no bias. Matches' errors are not independent, so be slow to call a bias real.
+ADEQUATE_Z = 5.0
 
 
 @dataclass(frozen=True)
@@ -166,7 +173,8 @@ def _fit(model: str, a: np.ndarray, b: np.ndarray, w: np.ndarray, M0: np.ndarray
     if model != "homography":
         A = _design(model, a) * sw
         k = A.shape[2]
-        A2, rhs = A.reshape(-1, k), (b[:, :, None] * sw).reshape(-1)
+        target = b - a if model == "translation" else b  # x' = x + t
+        A2, rhs = A.reshape(-1, k), (target[:, :, None] * sw).reshape(-1)
         p, *_ = np.linalg.lstsq(A2, rhs, rcond=None)
         JtJ = A2.T @ A2
         M = _linear_matrix(model, p)
@@ -233,8 +241,12 @@ def select_model(
         if f is None:
             continue
         xy, var = f.predict(corners)
-        diff2 = np.sum((xy - top_xy) ** 2, axis=1)
-        bias2 = np.maximum(diff2 - sigma2 * (top_var - var), 0.0)
+        extra = N_PARAMS["homography"] - N_PARAMS[m]
+        adequate = (f.rss - top.rss) / sigma2 < extra + ADEQUATE_Z * np.sqrt(2 * extra)
+        bias2 = 0.0
+        if not adequate:  # Mallows' Cp at the corners: the departure less the variances' part
+            diff2 = np.sum((xy - top_xy) ** 2, axis=1)
+            bias2 = np.maximum(diff2 - sigma2 * (top_var - var), 0.0)
         cost = float(np.mean(bias2 + sigma2 * var))
         if cost < best_cost:
             best, best_cost = f, cost

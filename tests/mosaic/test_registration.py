@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from mosaic.config import RegistrationConfig
-from mosaic.registration import estimate_homography
+from mosaic.registration import estimate_homography, estimate_motion
 from tests.helpers import corner_error, similarity
 
 
@@ -59,3 +59,68 @@ def test_min_inliers_from_config():
     assert estimate_homography(cur, prev, RegistrationConfig(min_inliers=8)).ok
     reg = estimate_homography(cur, prev, RegistrationConfig(min_inliers=20))
     assert not reg.ok and "inliers" in reg.reason
+
+
+def _similarity_pair(rng, n, x_max, perspective=(0.0, 0.0), noise=0.7, angle=3.0, scale=1.02):
+    H_true = similarity(angle, scale, 10.0, -6.0, center=(330, 175))
+    H_true[2, :2] = perspective
+    cur = rng.uniform([0, 0], [x_max, 350], (n, 2)).astype(np.float32)
+    prev = _project(H_true, cur) + rng.normal(0, noise, (n, 2)).astype(np.float32)
+    prev[: n // 6] = rng.uniform([0, 0], [660, 350], (n // 6, 2))  # outliers
+    return cur, prev, H_true
+
+
+def test_similarity_chosen_when_inliers_cover_a_third_of_the_frame():
+    """Vessels on one side, nothing on the other: the homography extrapolates its perspective
+    terms into the empty side, the similarity does not."""
+    rng = np.random.default_rng(4)
+    models, err_auto, err_h = [], [], []
+    for _ in range(8):
+        cur, prev, H_true = _similarity_pair(rng, 180, 220)
+        reg = estimate_motion(cur, prev, RegistrationConfig(), (350, 660))
+        assert reg.ok
+        models.append(reg.model)
+        assert 0.25 < reg.coverage < 0.36
+        err_auto.append(corner_error(reg.H_cur_to_prev, H_true, (660, 350)))
+        H_only = estimate_homography(cur, prev, RegistrationConfig()).H_cur_to_prev
+        err_h.append(corner_error(H_only, H_true, (660, 350)))
+    assert models.count("similarity") >= 6, models
+    assert "homography" not in models, models
+    assert np.median(err_auto) < 0.5 and np.median(err_auto) < 0.5 * np.median(err_h)
+
+
+def test_homography_chosen_for_a_strong_perspective_seen_across_the_frame():
+    rng = np.random.default_rng(5)
+    for _ in range(4):
+        cur, prev, H_true = _similarity_pair(rng, 300, 660, perspective=(2e-4, -1.5e-4))
+        reg = estimate_motion(cur, prev, RegistrationConfig(), (350, 660))
+        assert reg.ok and reg.model == "homography"
+        assert reg.coverage > 0.85
+        assert corner_error(reg.H_cur_to_prev, H_true, (660, 350)) < 1.0
+
+
+@pytest.mark.parametrize("model", ["translation", "similarity", "affine", "homography"])
+def test_a_forced_model_is_of_its_class(model):
+    rng = np.random.default_rng(6)
+    rigid = model == "translation"
+    cur, prev, _ = _similarity_pair(rng, 200, 660, angle=0.0 if rigid else 3.0, scale=1.0)
+    reg = estimate_motion(cur, prev, RegistrationConfig(model=model), (350, 660))
+    assert reg.ok and reg.model == model
+    H = reg.H_cur_to_prev
+    if model != "homography":
+        np.testing.assert_allclose(H[2], [0, 0, 1], atol=1e-12)
+    if model in ("translation", "similarity"):
+        assert abs(H[0, 0] - H[1, 1]) < 1e-9 and abs(H[0, 1] + H[1, 0]) < 1e-9
+    if model == "translation":
+        np.testing.assert_allclose(H[:2, :2], np.eye(2), atol=1e-12)
+
+
+def test_refinement_takes_in_the_inliers_an_overfitted_consensus_left_out():
+    """RANSAC's homography on one-sided points misses correct matches far away; the chosen
+    model, refined on every match within the threshold, takes them back."""
+    rng = np.random.default_rng(7)
+    cur, prev, H_true = _similarity_pair(rng, 240, 660)
+    true_inliers = np.arange(240) >= 40
+    reg = estimate_motion(cur, prev, RegistrationConfig(), (350, 660))
+    assert reg.inliers[true_inliers].mean() > 0.97
+    assert reg.inliers[~true_inliers].sum() <= 2
