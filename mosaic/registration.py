@@ -233,7 +233,7 @@ def select_model(
         f = ok[richest[-1]]
         return f, float("nan")
     dof = max(2 * len(a) - 8, 1)
-    sigma2 = top.rss / dof  # noise of a point, from the most general model
+    sigma2 = max(top.rss / dof, 1e-12)  # noise of a point, from the most general model
     top_xy, top_var = top.predict(corners)
     best, best_cost = top, float(np.mean(sigma2 * top_var))
     for m in MODELS[:-1]:

@@ -128,3 +128,59 @@ def test_gating_skips_blurred_and_dark_frames(trip):
     summary = result.report["summary"]
     assert summary["skipped"] == 2 and summary["registered"] == 12
     assert summary["frames_until_failure"] == 12
+
+
+def _pan_across_a_featureless_gap(fundus, n=45, step=4.0):
+    """A slow horizontal pan (320x240 view) over a retina that is featureless but for two
+    bands: band A fills the left of the first view and leaves it after ~27 frames, band B
+    enters from the right after 10. The first keyframe still overlaps the view by > 0.6 when
+    A has gone, so waiting for the overlap to drop loses it."""
+    w, h, x0, y0 = 320, 240, 420, 560
+    keep = np.zeros(fundus.shape[:2], bool)
+    keep[:, x0 : x0 + 110] = True
+    keep[:, x0 + w + 40 : x0 + w + 440] = True
+    source = np.where(keep[..., None], fundus, cv2.GaussianBlur(fundus, (0, 0), 25))
+    rng = np.random.default_rng(0)
+    frames, truth = [], []
+    for i in range(n):
+        T = np.array([[1.0, 0, x0 + step * i], [0, 1.0, y0], [0, 0, 1.0]])
+        view = cv2.warpPerspective(source, T, (w, h), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+        frames.append(np.clip(view + rng.normal(0, 3, view.shape), 0, 255).astype(np.uint8))
+        truth.append(T)
+    return frames, truth
+
+
+def test_keyframe_is_promoted_before_registration_fails_on_a_slow_pan(fundus):
+    frames, truth = _pan_across_a_featureless_gap(fundus)
+    size = (320, 240)
+
+    def run(**keyframes):
+        result = _run(_config("keyframes", **keyframes), frames)
+        entries = result.report["frames"]
+        H0 = np.array(entries[0]["H_to_canvas"])
+        errors = [
+            corner_error(
+                np.linalg.inv(H0) @ np.array(e["H_to_canvas"]),
+                np.linalg.inv(truth[0]) @ truth[e["index"]],
+                size,
+            )
+            for e in entries
+        ]
+        return result.report, np.array(errors)
+
+    report, errors = run()
+    tracking = report["summary"]["tracking"]
+    assert report["summary"]["registered"] == len(frames)
+    # every frame registered to a keyframe, never with fewer inliers than the promotion floor
+    assert tracking["placed_by_previous"] == 0
+    assert min(e["n_inliers"] for e in report["frames"][1:]) >= 40
+    assert tracking["keyframes"] >= 3
+    assert errors.max() < 5.0, errors
+    # promotion on overlap alone: the first keyframe's inliers decay to ~20 before a frame
+    # fails against it and is placed by its predecessor; measured 25 px off at worst
+    late, late_errors = run(
+        promote_min_inliers=0, promote_inlier_ratio=0.0, promote_coverage_ratio=0.0
+    )
+    assert late["summary"]["tracking"]["placed_by_previous"] >= 1
+    assert min(e["n_inliers"] for e in late["frames"][1:]) < 30
+    assert late_errors.max() > 2 * errors.max()
