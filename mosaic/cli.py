@@ -33,7 +33,7 @@ from mosaic.io import (
     write_json,
 )
 from mosaic.pipeline import MosaicBuilder, MosaicResult, register_pair
-from mosaic.synth import SynthParams, write_synthetic_video
+from mosaic.synth import SynthParams, pick_source, write_synthetic_video
 from mosaic.viz import VIEWER_MODES, RerunViewer, make_viewer
 
 app = typer.Typer(
@@ -126,6 +126,7 @@ def _print_summary(summary: dict[str, Any], output: Path, report_path: Path) -> 
         ("longest registered run", summary["longest_registered_run"]),
         ("segments", summary["segments"]),
         ("mean matches / inliers", f"{summary['mean_matches']} / {summary['mean_inliers']}"),
+        ("quality / flagged", f"{summary.get('quality')} / {summary.get('quality_flagged', 0)}"),
         ("frames per second", summary["fps"]),
         ("detector", summary["detector"]),
     ]
@@ -274,7 +275,10 @@ def _parse_size(size: str) -> tuple[int, int]:
 def synth(
     image: Annotated[
         Path | None,
-        typer.Argument(help="Source fundus image (default: the shipped CC0 sample)."),
+        typer.Argument(
+            help="Source fundus image, or a folder of them (the seed picks one); "
+            "default: the shipped CC0 sample."
+        ),
     ] = None,
     output: Annotated[Path, typer.Option("--output", "-o", help="Video (.mp4/.avi) or folder.")] = (
         Path("synthetic.mp4")
@@ -286,16 +290,26 @@ def synth(
     hard: Annotated[
         bool, typer.Option(help="Hard like real video: loops, fast motion, blur bursts, glare.")
     ] = False,
+    realistic: Annotated[
+        bool,
+        typer.Option(
+            help="Like real magnified fundus video: 25-45 % of the source's view per frame, "
+            "its rim at times, strong vignetting, gain/gamma changes, blur/defocus/glare bursts."
+        ),
+    ] = False,
 ) -> None:
     """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json)."""
     from mosaic.io import sample_image_path
 
     _setup_logging(False)
     with _user_errors():
-        make = SynthParams.hard if hard else SynthParams
+        if hard and realistic:
+            raise InputError("choose one of --hard and --realistic")
+        make = SynthParams.hard if hard else SynthParams.realistic if realistic else SynthParams
         params = make(n_frames=frames, size=_parse_size(size), seed=seed, nuisances=not clean)
-        gt = write_synthetic_video(image or sample_image_path(), output, params)
-        typer.echo(f"video: {output}\nground truth: {gt}")
+        source = pick_source(image or sample_image_path(), seed)
+        gt = write_synthetic_video(source, output, params)
+        typer.echo(f"video: {output}\nground truth: {gt}\nsource: {source}")
 
 
 def _pair_result(

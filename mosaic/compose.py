@@ -27,6 +27,7 @@ import numpy as np
 
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
+from mosaic.preprocess import scale_matrix
 
 log = logging.getLogger(__name__)
 
@@ -114,26 +115,26 @@ class Canvas:
     def content_in_frame(
         self,
         H_frame_to_ref: np.ndarray,
-        frame_shape: tuple[int, int],
-        H_frame_to_out: np.ndarray | None = None,
+        frame_shape: tuple[int, ...],
+        scale: float = 1.0,
         channel: int = 1,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The blended canvas seen from a frame: (values float32 (h, w), valid bool (h, w)).
+        """The blended canvas seen from a frame placed by `H_frame_to_ref`: (values float32,
+        valid bool), both of the frame's (h, w) = `frame_shape[:2]`, or of a copy resized by
+        `scale` (rounded like `cv2.resize` sizes, pixel centres as `preprocess.scale_matrix`).
 
-        Pixel (x, y) of the output shows the canvas where frame pixel inv(H_frame_to_out) @
-        (x, y) lands through `H_frame_to_ref`; `H_frame_to_out` (default identity, output of
-        `frame_shape` (h, w)) resamples, e.g. `preprocess.scale_matrix` for a smaller copy
-        whose shape is then `frame_shape`. `channel` picks one colour channel (1: green of
-        BGR; ignored on a 1-channel canvas). Valid where some frame contributed: the
-        accumulated sum and weight are sampled bilinearly and divided, so the values are a
-        weighted mean of covered pixels only and nothing of the empty canvas leaks in.
+        `channel` picks one colour channel (1: green of BGR; ignored on a 1-channel canvas).
+        Valid where some frame contributed: the accumulated sum and weight are both sampled
+        bilinearly and divided, so a value is a weighted mean of covered pixels only and
+        nothing of the empty canvas leaks in.
         """
-        h, w = int(frame_shape[0]), int(frame_shape[1])
+        fh, fw = int(frame_shape[0]), int(frame_shape[1])
+        h, w = max(round(fh * scale), 1), max(round(fw * scale), 1)
         values = np.zeros((h, w), np.float32)
         valid = np.zeros((h, w), bool)
-        if self._content is None or h == 0 or w == 0:
+        if self._content is None or fh == 0 or fw == 0:
             return values, valid
-        H_out_to_frame = np.eye(3) if H_frame_to_out is None else np.linalg.inv(H_frame_to_out)
+        H_out_to_frame = np.linalg.inv(scale_matrix((fh, fw), (h, w)))
         H_out_to_ref = np.asarray(H_frame_to_ref, np.float64) @ H_out_to_frame
         # Only the content under the frame's footprint is sampled (the buffer may be large).
         corners = np.array([[-1, -1, 1], [w, -1, 1], [-1, h, 1], [w, h, 1]], float)

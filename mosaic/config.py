@@ -86,7 +86,7 @@ class ComposeConfig:
     blend: str = "feather"  # feather | average | last
     max_canvas_px: int = 8000  # cap on either side of the canvas
     feather_px: int = 40  # distance from the frame edge over which feather weights ramp up
-    quality_threshold: float = 0.5  # a frame agreeing less with the mosaic under it (NCC of
+    quality_threshold: float = 0.4  # a frame agreeing less with the mosaic under it (NCC of
     # band-passed green, mosaic.quality) is flagged in the report as likely misregistered
 
 

@@ -12,13 +12,16 @@ bend the whole mosaic.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import coo_matrix, csr_matrix, diags
+from scipy.sparse.linalg import spsolve
 
 log = logging.getLogger(__name__)
+
+MAX_ITERATIONS = 30  # Levenberg-Marquardt steps: bounded time on long videos
 
 
 @dataclass(frozen=True)
@@ -44,30 +47,93 @@ class Refinement:
     dropped_loops: int = 0
 
 
-def _to_params(H: np.ndarray) -> np.ndarray:
-    return (H / H[2, 2]).ravel()[:8]
-
-
-def _to_matrix(p: np.ndarray) -> np.ndarray:
-    return np.append(p, 1.0).reshape(3, 3)
-
-
-def _project(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    p = xy @ H[:2, :2].T + H[:2, 2]
-    w = xy @ H[2, :2] + H[2, 2]
-    return p / w[:, None]
-
-
-def _residuals(poses: dict[int, np.ndarray], constraints: list[Constraint]) -> np.ndarray:
-    """Transfer errors in keyframe b's own pixels: a point of a, mapped a → ref → b, against
-    its match in b. Measured in image pixels rather than reference pixels, the residual gives
-    the solver no reward for shrinking the mosaic away from the fixed keyframe."""
-    return np.concatenate(
+def _map(params: np.ndarray, node: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points xy (M, 2) mapped by the homographies params[node] (8 free entries each, H22 = 1),
+    and the derivative of each mapped point by those entries (M, 2, 8)."""
+    h = params[node]
+    x, y = xy[:, 0], xy[:, 1]
+    w = h[:, 6] * x + h[:, 7] * y + 1.0
+    px = (h[:, 0] * x + h[:, 1] * y + h[:, 2]) / w
+    py = (h[:, 3] * x + h[:, 4] * y + h[:, 5]) / w
+    z = np.zeros_like(x)
+    J = np.stack(
         [
-            c.weight * (_project(np.linalg.solve(poses[c.b], poses[c.a]), c.xy_a) - c.xy_b).ravel()
-            for c in constraints
-        ]
+            np.stack([x / w, y / w, 1 / w, z, z, z, -px * x / w, -px * y / w], 1),
+            np.stack([z, z, z, x / w, y / w, 1 / w, -py * x / w, -py * y / w], 1),
+        ],
+        axis=1,
     )
+    return np.stack([px, py], 1), J
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """All constraint points stacked: node of each side, the points, the residual scale."""
+
+    a: np.ndarray  # (M,) node index (row of the params array) of the point's frame
+    b: np.ndarray  # (M,) node index of its match's frame
+    xy_a: np.ndarray  # (M, 2)
+    xy_b: np.ndarray  # (M, 2)
+    scale: np.ndarray  # (M,) weight / (pixel size of b in the reference), from the start poses
+    constraint: np.ndarray  # (M,) which constraint each point belongs to
+
+
+def _problem(
+    nodes: list[int], P0: np.ndarray, constraints: list[Constraint], N: np.ndarray, S: float
+) -> _Problem:
+    """The stacked problem in normalised coordinates (points mapped by N, residuals times S,
+    so that they stay in pixels)."""
+    row = {k: i for i, k in enumerate(nodes)}
+    sizes = [len(c.xy_a) for c in constraints]
+    a = np.repeat([row[c.a] for c in constraints], sizes)
+    b = np.repeat([row[c.b] for c in constraints], sizes)
+    weight = np.repeat([c.weight for c in constraints], sizes)
+    # a pixel of b spans about sqrt|det| reference pixels: residuals in b's own pixels give the
+    # solver no reward for shrinking the mosaic away from the fixed frame
+    pixel = np.sqrt(np.abs(P0[:, 0] * P0[:, 4] - P0[:, 1] * P0[:, 3]))
+    return _Problem(
+        a,
+        b,
+        np.concatenate([c.xy_a for c in constraints]).astype(np.float64) * N[0, 0] + N[:2, 2],
+        np.concatenate([c.xy_b for c in constraints]).astype(np.float64) * N[0, 0] + N[:2, 2],
+        S * weight / np.maximum(pixel[b], 1e-9),
+        np.repeat(np.arange(len(constraints)), sizes),
+    )
+
+
+def _residuals(params: np.ndarray, pb: _Problem) -> np.ndarray:
+    """Each point of a and its match in b, both mapped into the reference, apart (scaled)."""
+    ref_a, _ = _map(params, pb.a, pb.xy_a)
+    ref_b, _ = _map(params, pb.b, pb.xy_b)
+    return ((ref_a - ref_b) * pb.scale[:, None]).ravel()
+
+
+def _jacobian(params: np.ndarray, pb: _Problem, column: np.ndarray) -> csr_matrix:
+    """Sparse derivative of the residuals by the free nodes' parameters (column[node] is the
+    node's first column, -1 for the fixed node)."""
+    _, Ja = _map(params, pb.a, pb.xy_a)
+    _, Jb = _map(params, pb.b, pb.xy_b)
+    m = len(pb.a)
+    rows = np.repeat(np.arange(2 * m), 8).reshape(m, 2, 8)
+    blocks = []
+    for node, J, sign in ((pb.a, Ja, 1.0), (pb.b, Jb, -1.0)):
+        first = column[node]
+        keep = first >= 0
+        cols = first[:, None, None] + np.arange(8)[None, None, :]
+        cols = np.broadcast_to(cols, (m, 2, 8))
+        vals = sign * J * pb.scale[:, None, None]
+        blocks.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
+    r, c, v = (np.concatenate(parts) for parts in zip(*blocks, strict=True))
+    n_cols = 8 * int((column >= 0).sum())
+    return coo_matrix((v, (r, c)), shape=(2 * m, n_cols)).tocsr()
+
+
+def _constraint_rms(residuals: np.ndarray, pb: _Problem, weights: np.ndarray) -> np.ndarray:
+    """RMS transfer error (px, without the weights) of each constraint's points."""
+    sq = residuals.reshape(-1, 2) ** 2
+    total = np.bincount(pb.constraint, sq.sum(1), minlength=len(weights))
+    count = np.bincount(pb.constraint, minlength=len(weights))
+    return np.sqrt(total / np.maximum(count, 1)) / weights
 
 
 def _solve(
@@ -75,42 +141,91 @@ def _solve(
     constraints: list[Constraint],
     fixed: int,
     loss_scale_px: float,
-) -> tuple[dict[int, np.ndarray], np.ndarray, np.ndarray]:
+) -> tuple[dict[int, np.ndarray], np.ndarray, np.ndarray, _Problem]:
     """One robust least-squares solve: refined poses, residuals before and after."""
-    free = [k for k in sorted(poses) if k != fixed]
-    column = {k: 8 * i for i, k in enumerate(free)}
+    nodes = sorted(poses)
+    # Conditioning: points centred and scaled to ~1, poses conjugated accordingly.
+    xy = np.concatenate([c.xy_a for c in constraints])
+    S = max(float(xy.std()), 1.0)
+    N = np.array([[1 / S, 0, -xy[:, 0].mean() / S], [0, 1 / S, -xy[:, 1].mean() / S], [0, 0, 1]])
+    N_inv = np.linalg.inv(N)
+    normalised = [N @ poses[k] @ N_inv for k in nodes]
+    P0 = np.stack([(H / H[2, 2]).ravel()[:8] for H in normalised])
+    pb = _problem(nodes, P0, constraints, N, S)
+    free = np.array([k != fixed for k in nodes])
+    column = np.full(len(nodes), -1)
+    column[free] = 8 * np.arange(int(free.sum()))
 
-    def unpack(x: np.ndarray) -> dict[int, np.ndarray]:
-        out = {fixed: poses[fixed]}
-        out.update({k: _to_matrix(x[column[k] : column[k] + 8]) for k in free})
-        return out
+    def full(x: np.ndarray) -> np.ndarray:
+        params = P0.copy()
+        params[free] = x.reshape(-1, 8)
+        return params
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        return _residuals(unpack(x), constraints)
-
-    n_res = 2 * sum(len(c.xy_a) for c in constraints)
-    sparsity = lil_matrix((n_res, 8 * len(free)), dtype=np.int8)
-    row = 0
-    for c in constraints:
-        rows = slice(row, row + 2 * len(c.xy_a))
-        for k in (c.a, c.b):
-            if k in column:
-                sparsity[rows, column[k] : column[k] + 8] = 1
-        row += 2 * len(c.xy_a)
-
-    x0 = np.concatenate([_to_params(poses[k]) for k in free])
-    before = fun(x0)
-    result = least_squares(
-        fun,
+    x0 = P0[free].ravel()
+    before = _residuals(P0, pb)
+    x = _levenberg_marquardt(
+        lambda x: _residuals(full(x), pb),
+        lambda x: _jacobian(full(x), pb, column),
         x0,
-        jac_sparsity=sparsity,
-        loss="soft_l1",
-        f_scale=loss_scale_px,
-        x_scale="jac",
-        method="trf",
-        max_nfev=200,
+        loss_scale_px,
     )
-    return unpack(result.x), before, result.fun
+    params = full(x)
+    refined = {k: N_inv @ np.append(params[i], 1.0).reshape(3, 3) @ N for i, k in enumerate(nodes)}
+    refined = {k: H / H[2, 2] for k, H in refined.items()}
+    refined[fixed] = poses[fixed]
+    return refined, before, _residuals(params, pb), pb
+
+
+def _robust_weights(r: np.ndarray, scale: float) -> np.ndarray:
+    """Soft-L1 weights of each residual pair (one point): 1 / sqrt(1 + (|r| / scale)^2)."""
+    sq = (r.reshape(-1, 2) ** 2).sum(1) / scale**2
+    return np.repeat(1.0 / np.sqrt(1.0 + sq), 2)
+
+
+def _robust_cost(r: np.ndarray, scale: float) -> float:
+    sq = (r.reshape(-1, 2) ** 2).sum(1) / scale**2
+    return float(scale**2 * np.sum(2.0 * (np.sqrt(1.0 + sq) - 1.0)))
+
+
+def _levenberg_marquardt(
+    fun: Callable[[np.ndarray], np.ndarray],
+    jac: Callable[[np.ndarray], csr_matrix],
+    x: np.ndarray,
+    scale: float,
+) -> np.ndarray:
+    """Robust (soft-L1, re-weighted) Levenberg-Marquardt with sparse normal equations: the
+    graph is a chain with a few shortcuts, so a sparse direct solve is fast and exact."""
+    r = fun(x)
+    cost = _robust_cost(r, scale)
+    damping = 1e-4
+    for _ in range(MAX_ITERATIONS):
+        J = jac(x)
+        w = _robust_weights(r, scale)
+        Jw = J.multiply(w[:, None]).tocsr()
+        A = (J.T @ Jw).tocsc()
+        g = Jw.T @ r
+        diag = A.diagonal()
+        improved = False
+        while damping < 1e10:
+            D = diags(damping * np.maximum(diag, 1e-9) + 1e-12)
+            try:
+                step = spsolve((A + D).tocsc(), -g)
+            except RuntimeError:
+                step = np.full_like(x, np.nan)
+            if np.isfinite(step).all():
+                r_new = fun(x + step)
+                cost_new = _robust_cost(r_new, scale)
+                if np.isfinite(cost_new) and cost_new < cost:
+                    improved = True
+                    break
+            damping *= 10
+        if not improved:
+            break
+        x, r, gain = x + step, r_new, cost - cost_new
+        cost, damping = cost_new, max(damping / 10, 1e-9)
+        if gain < 1e-9 * max(cost, 1e-12):
+            break
+    return x
 
 
 def _rms(residuals: np.ndarray) -> float:
@@ -128,18 +243,18 @@ def refine_poses(
     constraints = [c for c in constraints if c.a in poses and c.b in poses and len(c.xy_a)]
     if not constraints or len(poses) < 2:
         return Refinement(dict(poses), 0.0, 0.0, len(constraints))
-    refined, before, after = _solve(poses, constraints, fixed, loss_scale_px)
+    refined, before, after, pb = _solve(poses, constraints, fixed, loss_scale_px)
     rms_before = _rms(before)
-    kept = [
-        c
-        for c in constraints
-        if not c.loop or _rms(_residuals(refined, [c])) / c.weight <= max_loop_rms_px
-    ]
+    weights = np.array([c.weight for c in constraints])
+    per_constraint = _constraint_rms(after, pb, weights)
+    loops = np.array([c.loop for c in constraints])
+    keep = ~loops | (per_constraint <= max_loop_rms_px)
+    kept = [c for c, k in zip(constraints, keep, strict=True) if k]
     dropped = len(constraints) - len(kept)
     if dropped:
-        refined, _, after = _solve(poses, kept, fixed, loss_scale_px)
+        refined, _, after, _ = _solve(poses, kept, fixed, loss_scale_px)
     log.info(
-        "pose graph: %d keyframes, %d constraints (%d loop closures dropped), "
+        "pose graph: %d poses, %d constraints (%d loop closures dropped), "
         "residual RMS %.2f -> %.2f px",
         len(poses),
         len(kept),

@@ -25,7 +25,7 @@ import numpy as np
 
 from mosaic.compose import Canvas
 from mosaic.config import ComposeConfig, PreprocessConfig
-from mosaic.preprocess import prepare, scale_matrix, to_working_size
+from mosaic.preprocess import prepare, to_working_size
 from mosaic.synth import corner_error, relative_homographies
 
 log = logging.getLogger(__name__)
@@ -126,19 +126,19 @@ def frame_vs_canvas(
     by `H_frame_to_ref` with what `canvas` holds under it (its green channel), over the
     frame's `mask` (nonzero = valid; None: all); NaN without enough overlap."""
     gray = frame if frame.ndim == 2 else frame[..., 1]
-    h, w = gray.shape
     s = analysis_scale(gray.shape)
-    size = (max(round(w * s), 1), max(round(h * s), 1))
-    if size != (w, h):
+    mosaic, mosaic_valid = canvas.content_in_frame(H_frame_to_ref, gray.shape, s)
+    size = mosaic.shape[::-1]  # (w, h) of the analysis copy
+    if size != gray.shape[::-1]:
         gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
     frame_valid = np.ones(gray.shape, bool)
     if mask is not None:
-        if mask.shape != (h, w):
-            raise ValueError(f"mask shape {mask.shape} does not match frame shape {(h, w)}")
-        small = mask if size == (w, h) else cv2.resize(mask, size, interpolation=cv2.INTER_AREA)
-        frame_valid = small >= 255 if small.dtype == np.uint8 else small > 0
-    H_frame_to_small = scale_matrix((h, w), gray.shape)
-    mosaic, mosaic_valid = canvas.content_in_frame(H_frame_to_ref, gray.shape, H_frame_to_small)
+        if mask.shape != frame.shape[:2]:
+            raise ValueError(f"mask shape {mask.shape} does not match frame shape {frame.shape}")
+        inside = (mask != 0).astype(np.uint8) * 255
+        if size != inside.shape[::-1]:
+            inside = cv2.resize(inside, size, interpolation=cv2.INTER_AREA)
+        frame_valid = inside == 255  # analysis pixels wholly inside the mask
     return agreement(gray, mosaic, frame_valid & mosaic_valid)
 
 
@@ -151,7 +151,9 @@ def _first_segment(report: dict[str, Any]) -> int:
 
 
 def _spearman(x: np.ndarray, y: np.ndarray) -> float:
-    """Spearman rank correlation (average ranks for ties); NaN under 3 pairs."""
+    """Spearman rank correlation (average ranks for ties) of the finite pairs; NaN under 3."""
+    finite = np.isfinite(x) & np.isfinite(y)
+    x, y = x[finite], y[finite]
     if len(x) < 3:
         return math.nan
     from scipy.stats import spearmanr
@@ -177,8 +179,9 @@ def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
 def _misalignment(
     i: int, est: list[np.ndarray], true: list[np.ndarray], points: np.ndarray, size: tuple[int, int]
 ) -> float:
-    """Mean true distance (px of the reference frame) between what pixels of frame i show and
-    what the frames before it show at the same place of the mosaic, over their overlap."""
+    """Median true distance (px of the reference frame) between what pixels of frame i show and
+    what the frames before it show at the same place of the mosaic, over their overlap (the
+    median: what most of the mosaic under the frame shows)."""
     w, h = size
     cx, cy = (w - 1) / 2, (h - 1) / 2
     in_ref = _apply(est[i], points)  # where the frame's points are drawn
@@ -191,7 +194,7 @@ def _misalignment(
         if inside.any():
             q_h = np.c_[q[inside], np.ones(int(inside.sum()))]
             distances.append(np.linalg.norm(truth_i[inside] - _apply(true[j], q_h), axis=1))
-    return float(np.concatenate(distances).mean()) if distances else math.nan
+    return float(np.median(np.concatenate(distances))) if distances else math.nan
 
 
 def _catch(scores: np.ndarray, errors: np.ndarray, threshold: float, bad_px: float) -> dict:
@@ -225,9 +228,9 @@ def score_vs_error(
       being the segment's first frame. It includes what the score cannot see: the drift of the
       whole mosaic away from frame 0, and the frame corners, which lie outside the retina and
       are extrapolated by the homography;
-    - `misalignment`: the mean true distance between what the frame's retina pixels show and
-      what the frames placed before it show at the same mosaic position, over their overlap
-      (what the score measures: doubled vessels).
+    - `misalignment`: the median true distance between what the frame's retina pixels show
+      and what the frames placed before it show at the same mosaic position, over their
+      overlap (what the score measures: doubled vessels).
     `threshold` (default: the report's `[compose] quality_threshold`) flags frames; a frame is
     bad when an error exceeds `bad_error_px` (corner) or `bad_misalignment_px`. Returns the
     Spearman correlations of score and each error (negative: lower score, larger error), per

@@ -5,7 +5,23 @@ A virtual camera viewport moves over a still fundus image along a smooth random 
 `warpPerspective(source, inv(H_frame_to_source))`, so `H_frame_to_source` is the exact ground
 truth. Optional nuisances (illumination drift, vignetting, blur, noise) and a dark elliptical
 aperture make frames look like slit-lamp / fundus video; they are photometric only and never
-move a pixel, so the ground truth stays exact.
+move a pixel (every blur kernel is centred), so the ground truth stays exact.
+
+Profiles: the defaults are a kind video; `SynthParams.hard()` adds loops, fast motion, blur
+bursts and glare; `SynthParams.realistic()` imitates magnified slit-lamp / fundus video: the
+frame spans a quarter to a half of the source's field of view (soft, upsampled texture where
+vessels are the only structure), the path reaches the rim of the source's view, strong
+vignetting, per-frame gain / gamma changes, noise, optics blur on every frame, motion blur
+along the motion, bursts of blur, defocus and glare, 4-25 px of motion per frame.
+
+Compression: `.mp4` is written by OpenCV's FFmpeg writer with the `mp4v` codec (MPEG-4 Part 2)
+at its default bit rate. The OpenCV wheel has no software H.264 encoder (`avc1` / `H264` only
+reach the absent V4L2 hardware encoder), so real videos' H.264 is not reproduced bit for bit;
+what matters to registration is the loss, and on the realistic profile `mp4v` gives 32-33 dB
+PSNR (rendered vs decoded frame, recorded in the ground truth as `psnr_db`; 31.1 dB the worst
+frame seen). libx264 (PyAV 18.1, tried outside the project) gives 31.7-32.6 dB at CRF 18-28 on
+frames with noise sigma 6, where `mp4v` gives 32.2 dB: at noise sigma 5-7 the loss is mostly
+the noise the codec drops (4:2:0 chroma alone costs 32 dB), not the codec's own artefacts.
 
 Used by the tests and benchmarks to measure registration error against the truth, and by users
 (`write_synthetic_video`) to check the tool on a video whose answer is known.
@@ -25,13 +41,25 @@ import cv2
 import numpy as np
 
 from mosaic.errors import ConfigError, InputError, OutputError
-from mosaic.io import read_image, to_bgr8, write_json
+from mosaic.io import IMAGE_READ_SUFFIXES, natural_key, open_frames, read_image, to_bgr8, write_json
 
 log = logging.getLogger(__name__)
 
 _FOV_THRESHOLD = 15  # grey level separating a fundus image's black border from the retina
 _APERTURE_LEVEL = 2.0  # grey level of the dark border outside the simulated aperture
 _VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}
+_PSNR_MAX_FRAMES = 250  # frames kept in memory to measure the compression loss of a video file
+
+# Independent random streams (children of SeedSequence(seed)): switching one group of
+# nuisances on or off never changes what the others draw, nor the trajectory.
+_GEOMETRY, _NUISANCE, _HARD_GEOMETRY, _HARD_NUISANCE = 0, 1, 2, 3
+_REAL_GEOMETRY, _REAL_NUISANCE = 4, 5
+_SOURCE_ORDER_SEED = 13  # fixed shuffle of a source folder (`pick_source`)
+
+
+def _stream(seed: int, index: int) -> np.random.Generator:
+    """Random generator of stream `index` of a video's seed."""
+    return np.random.default_rng(np.random.SeedSequence(seed).spawn(index + 1)[index])
 
 
 @dataclass(frozen=True)
@@ -53,14 +81,72 @@ class SynthParams:
     fps: float = 25.0
     # Hard cases of real video (off by default; `hard()` turns them on):
     revisit: bool = False  # the second half of the path runs back beside the first (loops)
-    fast_motion_prob: float = 0.0  # chance per frame of a burst of 3-5 steps at 4x speed
+    fast_motion_prob: float = 0.0  # chance per frame of a burst of 3-5 faster steps
     blur_burst_prob: float = 0.0  # chance per frame that a burst of 3-6 strongly blurred starts
     glare_prob: float = 0.0  # chance per frame of a bright specular reflection
+    fast_motion_factor: float = 4.0  # speed-up during such a burst
+    # Realistic video (the defaults reproduce the videos above; `realistic()` sets them):
+    fov_fraction: tuple[float, float] | None = None  # frame width / source FOV diameter, drawn
+    #   per video in this range (None: frame px = source px, zoomed in only if the view is small)
+    rim_overlap: float = 0.0  # how deep the source's FOV border comes into the frame, at one
+    #   place of the path: share of the frame's half-height (0: never)
+    speed_variation: float = 0.3  # relative amplitude of the smooth change of speed
+    step_jitter: float = 0.0  # per-frame factor of the step length in 1 ± this (hand tremor)
+    step_range_px: tuple[float, float] | None = None  # clip each frame's motion to this range
+    gain_drift: float = 0.12  # amplitude of the smooth illumination change
+    gain_jitter: float = 0.0  # per-frame independent gain factor in 1 ± this
+    gamma_jitter: float = 0.0  # per-frame independent gamma in 1 ± this
+    vignette: float = 0.18  # mean darkening at the frame corners (share of the light)
+    vignette_variation: float = 0.12  # smooth change of the darkening along the video, ±
+    optics_blur_px: float = 0.0  # gaussian sigma of the optics' blur, every frame
+    noise_jitter: float = 0.0  # per-frame noise sigma in noise_sigma ± this
+    motion_blur: float = 0.0  # exposure / frame interval: streak = this x motion at the centre
+    defocus_burst_prob: float = 0.0  # chance per frame that a 3-8 frame defocus burst starts
+    glare_burst_prob: float = 0.0  # chance per frame that a 3-8 frame drifting glare starts
 
     @classmethod
     def hard(cls, **overrides: Any) -> SynthParams:
         """A video hard the way real ones are: loops, fast motion, blur bursts, glare."""
         defaults = dict(revisit=True, fast_motion_prob=0.03, blur_burst_prob=0.02, glare_prob=0.1)
+        return cls(**{**defaults, **overrides})
+
+    @classmethod
+    def realistic(cls, **overrides: Any) -> SynthParams:
+        """Looks like real magnified slit-lamp / fundus video (see the module docstring).
+
+        The frame spans 25-45 % of the source's field of view, so a 500-1300 px fundus photo is
+        upsampled 1.5-5x; the path touches the rim of the view (part of some frames black);
+        4-25 px of motion per frame, varying, with faster stretches, a few degrees of rotation,
+        ±5 % zoom; vignetting up to ~40 %, per-frame gain and gamma ±20 %, noise sigma 5-7,
+        optics blur sigma 1 px, motion blur, bursts of blur, defocus and glare.
+        """
+        defaults = dict(
+            fov_fraction=(0.25, 0.45),
+            rim_overlap=0.4,
+            max_step_px=10.0,
+            speed_variation=0.6,
+            step_jitter=0.3,
+            fast_motion_prob=0.02,
+            fast_motion_factor=2.2,
+            step_range_px=(4.5, 24.0),
+            rotation_deg=6.0,
+            scale_range=(0.95, 1.05),
+            perspective=3e-5,
+            gain_drift=0.1,
+            gain_jitter=0.1,
+            gamma_jitter=0.2,
+            vignette=0.32,
+            vignette_variation=0.1,
+            optics_blur_px=1.0,
+            noise_sigma=6.0,
+            noise_jitter=1.0,
+            motion_blur=0.3,
+            blur_prob=0.05,
+            blur_burst_prob=0.015,
+            defocus_burst_prob=0.02,
+            glare_burst_prob=0.02,
+            glare_prob=0.03,
+        )
         return cls(**{**defaults, **overrides})
 
     def __post_init__(self) -> None:
@@ -84,6 +170,32 @@ class SynthParams:
                     ("fast_motion_prob", self.fast_motion_prob),
                     ("blur_burst_prob", self.blur_burst_prob),
                     ("glare_prob", self.glare_prob),
+                    ("defocus_burst_prob", self.defocus_burst_prob),
+                    ("glare_burst_prob", self.glare_burst_prob),
+                    ("rim_overlap", self.rim_overlap),
+                    ("gain_jitter", self.gain_jitter),
+                    ("gamma_jitter", self.gamma_jitter),
+                    ("vignette", self.vignette),
+                )
+            ),
+            *(
+                (v >= 0, f"{name} must be >= 0, got {v}")
+                for name, v in (
+                    ("fast_motion_factor", self.fast_motion_factor),
+                    ("speed_variation", self.speed_variation),
+                    ("step_jitter", self.step_jitter),
+                    ("gain_drift", self.gain_drift),
+                    ("vignette_variation", self.vignette_variation),
+                    ("optics_blur_px", self.optics_blur_px),
+                    ("noise_jitter", self.noise_jitter),
+                    ("motion_blur", self.motion_blur),
+                )
+            ),
+            *(
+                (rng is None or 0 < rng[0] <= rng[1], f"{name} must satisfy 0 < low <= high")
+                for name, rng in (
+                    ("fov_fraction", self.fov_fraction),
+                    ("step_range_px", self.step_range_px),
                 )
             ),
         ]
@@ -97,12 +209,11 @@ class SynthParams:
 # --------------------------------------------------------------------------------------------
 
 
-def estimate_fov_disc(source: np.ndarray) -> tuple[float, float, float]:
-    """Largest disc (cx, cy, r) inside the illuminated field of view of a fundus image.
+def _fov_distance(source: np.ndarray) -> np.ndarray:
+    """Distance (px) of every pixel to the black border of a fundus image's field of view.
 
-    The black border is found by thresholding; holes (dark lesions, vessels) are filled, and the
-    maximum of the distance transform gives the largest inscribed disc — also correct for fundus
-    images whose circular view is clipped at the top and bottom.
+    The border is found by thresholding; holes (dark lesions, vessels) are filled. The map is
+    padded by one pixel (index [y + 1, x + 1]) so the image border also counts as outside.
     """
     gray = source if source.ndim == 2 else cv2.cvtColor(source, cv2.COLOR_BGR2GRAY)
     mask = (cv2.GaussianBlur(gray, (0, 0), 2.0) > _FOV_THRESHOLD).astype(np.uint8)
@@ -113,8 +224,16 @@ def estimate_fov_disc(source: np.ndarray) -> tuple[float, float, float]:
     is_hole = (x0 > 0) & (y0 > 0) & (x1 < w) & (y1 < h)
     is_hole[0] = False  # label 0: the bright region itself
     mask[is_hole[labels]] = 1
-    # Zero padding so the image border also counts as outside the view.
-    dist = cv2.distanceTransform(np.pad(mask, 1), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return cv2.distanceTransform(np.pad(mask, 1), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+
+
+def estimate_fov_disc(source: np.ndarray) -> tuple[float, float, float]:
+    """Largest disc (cx, cy, r) inside the illuminated field of view of a fundus image.
+
+    The maximum of the distance to the view's border gives the largest inscribed disc — also
+    correct for fundus images whose circular view is clipped at the top and bottom.
+    """
+    dist = _fov_distance(source)
     iy, ix = np.unravel_index(int(np.argmax(dist)), dist.shape)
     return float(ix - 1), float(iy - 1), float(dist[iy, ix])
 
@@ -165,6 +284,25 @@ def _centre_path(rng: np.random.Generator, steps: np.ndarray, radius: float) -> 
     return np.stack([np.interp(targets, arc, xy[:, 0]), np.interp(targets, arc, xy[:, 1])], 1)
 
 
+def _touch_rim(
+    path: np.ndarray, centre: np.ndarray, dist: np.ndarray, min_dist: np.ndarray
+) -> np.ndarray:
+    """Shift a path (N, 2) outwards until a frame centre comes `min_dist` (N,) from the view's
+    border: the largest shift, along the direction of the path's farthest point from `centre`,
+    that keeps every `centre + path[i]` at least `min_dist[i]` from it (`dist`: `_fov_distance`).
+    A shift keeps every step's length; the path must start feasible."""
+    norms = np.linalg.norm(path, axis=1)
+    far = int(np.argmax(norms))
+    u = path[far] / norms[far] if norms[far] > 1e-9 else np.array([1.0, 0.0])
+    shifts = np.arange(0.0, float(max(dist.shape)), 0.5)
+    xy = centre + path[None] + shifts[:, None, None] * u  # (shifts, N, 2)
+    ix = np.clip(np.rint(xy[..., 0]).astype(int) + 1, 0, dist.shape[1] - 1)
+    iy = np.clip(np.rint(xy[..., 1]).astype(int) + 1, 0, dist.shape[0] - 1)
+    feasible = (dist[iy, ix] >= min_dist).all(axis=1)
+    n_ok = shifts.size if feasible.all() else int(np.argmin(feasible))
+    return path + shifts[max(n_ok - 1, 0)] * u
+
+
 def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
     """Ground truth `H_frame_to_source` (N, 3, 3) of a smooth path inside the source's view.
 
@@ -172,18 +310,24 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
     the inscribed disc of the source's field of view (minus a margin), so no frame shows the
     source's black border. If the viewport is too large for the source, the whole video is
     zoomed in uniformly (logged).
+
+    With `fov_fraction` the frame width spans that share of the view's diameter instead (drawn
+    per video). With `rim_overlap` > 0 the path is shifted towards the rim of the view until,
+    at one place, the view's black border comes within (1 - rim_overlap) frame half-heights of
+    the frame centre: those frames show part of the border, as magnified real video does.
     """
     n = params.n_frames
     w, h = params.size
     cx, cy, r_fov = estimate_fov_disc(source)
     margin = max(4.0, 0.02 * r_fov)
-    rng = np.random.default_rng(np.random.SeedSequence(params.seed).spawn(2)[0])
+    rng = _stream(params.seed, _GEOMETRY)
     t = np.linspace(0.0, 1.0, n)
     angle = np.deg2rad(params.rotation_deg) / 2 * _smooth_signal(rng, t)
     lo, hi = np.log(params.scale_range[0]), np.log(params.scale_range[1])
     zoom = np.exp((lo + hi) / 2 + (hi - lo) / 2 * _smooth_signal(rng, t))
     tilt = params.perspective * np.stack([_smooth_signal(rng, t), _smooth_signal(rng, t)], 1)
-    speed = 1.0 + 0.3 * _smooth_signal(rng, t[:-1]) if n > 2 else np.ones(max(n - 1, 0))
+    speed_signal = _smooth_signal(rng, t[:-1]) if n > 2 else np.zeros(max(n - 1, 0))
+    speed = 1.0 + params.speed_variation * speed_signal
 
     # Frame-to-source map without the final translation: A = R S P T(-frame centre).
     c, s = np.cos(angle), np.sin(angle)
@@ -202,7 +346,13 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
     usable = 0.65 * (r_fov - margin)  # at most this much of the radius for the viewport
     if usable <= 1.0:
         raise InputError(f"source image field of view too small (radius {r_fov:.0f} px)")
-    if reach > usable:
+    real_rng = _stream(params.seed, _REAL_GEOMETRY)
+    fraction = real_rng.uniform(*(params.fov_fraction or (1.0, 1.0)))
+    tremor = 1.0 + real_rng.uniform(-params.step_jitter, params.step_jitter, max(n - 1, 0))
+    if params.fov_fraction is not None:
+        base = fraction * 2 * r_fov / w
+        log.info("frame spans %.0f %% of the source's view (x%.2f)", 100 * fraction, 1 / base)
+    elif reach > usable:
         base = usable / reach
         log.info("viewport %dx%d too large for the source's view: zooming in x%.2f", w, h, 1 / base)
     A[:, :2, :] *= base  # scales the mapped x, y (not w) of every point by `base`
@@ -210,13 +360,22 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
 
     # Centre motion in source px: frame-px speed times the frame's source-px-per-frame-px.
     steps = params.max_step_px * speed / speed.mean() if n > 1 else np.zeros(0)
-    hard_rng = np.random.default_rng(np.random.SeedSequence(params.seed).spawn(3)[2])
+    hard_rng = _stream(params.seed, _HARD_GEOMETRY)
     if params.fast_motion_prob > 0 and n > 1:
         starts = np.flatnonzero(hard_rng.random(n - 1) < params.fast_motion_prob)
         for start in starts:
-            steps[start : start + int(hard_rng.integers(3, 6))] *= 4.0
+            steps[start : start + int(hard_rng.integers(3, 6))] *= params.fast_motion_factor
+    if params.step_jitter > 0:
+        steps = steps * tremor
+    if params.step_range_px is not None:
+        steps = np.clip(steps, *params.step_range_px)
     steps = steps * base / np.sqrt(zoom[:-1] * zoom[1:]) if n > 1 else steps
-    radius = r_fov - margin - reach
+    radius = r_fov - margin - reach * (1.0 - params.rim_overlap)  # then shifted to the rim
+    if radius <= 0:
+        raise InputError(
+            f"frame {w}x{h} too large for the source's view (radius {r_fov:.0f} px) "
+            f"at {1 / base:.2f}x magnification"
+        )
     if params.revisit and n > 3:
         # Out along the first half of the path, back along it shifted sideways by a third of
         # the frame height: the way back overlaps the way out only partly.
@@ -231,6 +390,10 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
         path *= min(1.0, radius / max(np.linalg.norm(path, axis=1).max(), 1e-9))
     else:
         path = _centre_path(rng, steps, radius)
+    if params.rim_overlap > 0:
+        half_height = (h - 1) / 2 * base / zoom  # in source px
+        min_dist = np.maximum((1.0 - params.rim_overlap) * half_height, 1.0)
+        path = _touch_rim(path, np.array([cx, cy]), _fov_distance(source), min_dist)
     H = _translation(cx, cy)[None] @ np.tile(np.eye(3), (n, 1, 1))
     H[:, :2, 2] += path
     H = H @ A
@@ -266,14 +429,103 @@ def _blur_kernel(rng: np.random.Generator) -> np.ndarray:
     return kernel / kernel.sum()
 
 
+def _line_kernel(length_px: float, angle_rad: float) -> np.ndarray:
+    """Motion-blur kernel: a line `length_px` long, centred (its centroid is the kernel centre)."""
+    mid = int(np.ceil(length_px / 2)) + 1
+    t = np.linspace(-length_px / 2, length_px / 2, int(np.ceil(4 * length_px)) + 2)
+    x, y = mid + t * np.cos(angle_rad), mid + t * np.sin(angle_rad)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    kernel = np.zeros((2 * mid + 1, 2 * mid + 1))
+    for dx, dy, weight in (
+        (0, 0, (1 - fx) * (1 - fy)),
+        (1, 0, fx * (1 - fy)),
+        (0, 1, (1 - fx) * fy),
+        (1, 1, fx * fy),
+    ):  # bilinear splat of points placed symmetrically about the centre
+        np.add.at(kernel, (y0 + dy, x0 + dx), weight)
+    return (kernel / kernel.sum()).astype(np.float32)
+
+
+def _disc_kernel(radius_px: float) -> np.ndarray:
+    """Defocus kernel: a disc of `radius_px` (anti-aliased, 4x4 samples per pixel), centred."""
+    mid, sub = int(np.ceil(radius_px)) + 1, 4
+    size = 2 * mid + 1
+    c = (np.arange(size * sub) + 0.5) / sub - 0.5 - mid  # sample offsets from the centre
+    inside = (c[None, :] ** 2 + c[:, None] ** 2 <= radius_px**2).astype(np.float64)
+    kernel = inside.reshape(size, sub, size, sub).mean(axis=(1, 3))
+    return (kernel / kernel.sum()).astype(np.float32)
+
+
+def _glare_blob(w: int, h: int, cx: float, cy: float, ax: float, ay: float) -> np.ndarray:
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    return np.exp(-(((xx - cx) / ax) ** 2 + ((yy - cy) / ay) ** 2))
+
+
 def _add_glare(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """A bright, saturating specular reflection (soft ellipse) somewhere in the frame."""
     h, w = img.shape[:2]
     cx, cy = rng.uniform(0.2, 0.8) * w, rng.uniform(0.2, 0.8) * h
     ax, ay = rng.uniform(0.05, 0.15) * w, rng.uniform(0.05, 0.2) * h
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    blob = np.exp(-(((xx - cx) / ax) ** 2 + ((yy - cy) / ay) ** 2))
+    blob = _glare_blob(w, h, cx, cy, ax, ay)
     return img + float(rng.uniform(120, 255)) * blob[..., None]
+
+
+def _bursts(rng: np.random.Generator, n: int, prob: float) -> Iterator[tuple[int, np.ndarray]]:
+    """(start, strength per frame) of each burst: 3-8 frames, strength a sine ramp up to 1."""
+    i = 0
+    while i < n:
+        if rng.random() < prob:
+            length = int(rng.integers(3, 9))
+            yield i, np.sin(np.pi * (np.arange(length) + 0.5) / length)[: n - i]
+            i += length
+        else:
+            i += 1
+
+
+@dataclass(frozen=True)
+class _RealisticNuisances:
+    """Per-frame draws of the realistic profile's nuisances (independent stream)."""
+
+    gain: np.ndarray  # (n,) per-frame gain factor
+    gamma: np.ndarray  # (n,)
+    noise_sigma: np.ndarray  # (n,) grey levels
+    streak: np.ndarray  # (n, 2) motion-blur length (px) and angle (rad)
+    defocus_px: np.ndarray  # (n,) disc radius, 0 = sharp
+    glare: list[tuple[float, float, float, float, float] | None]  # cx, cy, ax, ay, amplitude
+
+    @classmethod
+    def draw(cls, params: SynthParams, H_all: np.ndarray) -> _RealisticNuisances:
+        n, (w, h) = params.n_frames, params.size
+        rng = _stream(params.seed, _REAL_NUISANCE)
+        gain = 1.0 + rng.uniform(-params.gain_jitter, params.gain_jitter, n)
+        gamma = 1.0 + rng.uniform(-params.gamma_jitter, params.gamma_jitter, n)
+        noise = params.noise_sigma + rng.uniform(-params.noise_jitter, params.noise_jitter, n)
+        defocus = np.zeros(n)
+        for start, ramp in _bursts(rng, n, params.defocus_burst_prob):
+            defocus[start : start + ramp.size] = rng.uniform(2.5, 6.0) * ramp
+        glare: list[tuple[float, float, float, float, float] | None] = [None] * n
+        for start, ramp in _bursts(rng, n, params.glare_burst_prob):
+            (x0, x1), (y0, y1) = rng.uniform(0.15, 0.85, (2, 2)) * [[w], [h]]
+            ax, ay = rng.uniform(0.08, 0.25) * w, rng.uniform(0.1, 0.3) * h
+            peak = rng.uniform(80, 200)
+            for k, strength in enumerate(ramp):  # drifts across the frame, brightest mid-burst
+                f = k / max(ramp.size - 1, 1)
+                x, y = x0 + f * (x1 - x0), y0 + f * (y1 - y0)
+                glare[start + k] = (float(x), float(y), ax, ay, float(peak * strength))
+        # Image motion at the frame centre (frame px per frame), from the neighbours' centres.
+        centre = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
+        velocity = np.zeros((n, 2))
+        if n > 1:
+            in_source = H_all @ centre
+            nxt = np.einsum("nij,nj->ni", np.linalg.inv(H_all[:-1]), in_source[1:])
+            step = nxt[:, :2] / nxt[:, 2:] - centre[:2]  # frame i+1's centre seen in frame i
+            velocity[:-1] += step / 2
+            velocity[1:] += step / 2
+            velocity[[0, -1]] *= 2
+        length = params.motion_blur * np.linalg.norm(velocity, axis=1)
+        streak = np.stack([length, np.arctan2(velocity[:, 1], velocity[:, 0])], 1)
+        return cls(gain, gamma, np.maximum(noise, 0.0), streak, defocus, glare)
 
 
 def render_frames(
@@ -283,15 +535,16 @@ def render_frames(
     source = to_bgr8(source)
     w, h = params.size
     H_all = plan_trajectory(source, params)
-    rng = np.random.default_rng(np.random.SeedSequence(params.seed).spawn(2)[1])
+    rng = _stream(params.seed, _NUISANCE)
     t = np.linspace(0.0, 1.0, params.n_frames)
     aperture = _aperture_mask(w, h)[..., None] if params.aperture else None
-    hard_rng = np.random.default_rng(np.random.SeedSequence(params.seed).spawn(4)[3])
+    hard_rng = _stream(params.seed, _HARD_NUISANCE)
+    real = _RealisticNuisances.draw(params, H_all)
     burst_left = 0
     if params.nuisances:
-        gain = 1.0 + 0.12 * _smooth_signal(rng, t)
+        gain = 1.0 + params.gain_drift * _smooth_signal(rng, t)
         tint = 1.0 + 0.04 * np.stack([_smooth_signal(rng, t) for _ in range(3)], 1)
-        vignette = 0.18 + 0.12 * _smooth_signal(rng, t)
+        vignette = params.vignette + params.vignette_variation * _smooth_signal(rng, t)
         vig_centre = np.stack(
             [_smooth_signal(rng, t) * 0.15 * w, _smooth_signal(rng, t) * 0.15 * h], 1
         )
@@ -313,9 +566,16 @@ def render_frames(
             yield frame, H_frame_to_source
             continue
         img = frame.astype(np.float32)
-        if params.nuisances:
+        if params.nuisances:  # optics, motion and defocus blur the scene before the sensor
+            if params.optics_blur_px > 0:
+                img = cv2.GaussianBlur(img, (0, 0), params.optics_blur_px)
+            length, angle = real.streak[i]
+            if length >= 1.0:
+                img = cv2.filter2D(img, -1, _line_kernel(length, angle))
+            if real.defocus_px[i] >= 0.5:
+                img = cv2.filter2D(img, -1, _disc_kernel(real.defocus_px[i]))
             r2 = ((xx - vig_centre[i, 0]) ** 2 + (yy - vig_centre[i, 1]) ** 2) * r2_scale
-            light = gain[i] * (1.0 - vignette[i] * r2)
+            light = gain[i] * real.gain[i] * (1.0 - vignette[i] * r2)
             img *= light[..., None] * tint[i].astype(np.float32)
         if aperture is not None:
             img = img * aperture + _APERTURE_LEVEL * (1.0 - aperture)
@@ -330,8 +590,13 @@ def render_frames(
                 img = cv2.filter2D(img, -1, _blur_kernel(rng), borderType=cv2.BORDER_REFLECT)
             if hard_rng.random() < params.glare_prob:
                 img = _add_glare(img, hard_rng)
-            if params.noise_sigma > 0:
-                img += rng.normal(0.0, params.noise_sigma, img.shape).astype(np.float32)
+            if real.glare[i] is not None:
+                *blob, amplitude = real.glare[i]
+                img = img + amplitude * _glare_blob(w, h, *blob)[..., None]
+            if params.gamma_jitter > 0:
+                img = 255.0 * (np.clip(img, 0.0, 255.0) / 255.0) ** float(real.gamma[i])
+            if real.noise_sigma[i] > 0:
+                img += rng.normal(0.0, real.noise_sigma[i], img.shape).astype(np.float32)
         yield np.clip(img + 0.5, 0, 255).astype(np.uint8), H_frame_to_source
 
 
@@ -347,14 +612,51 @@ def gt_path_for(video_path: str | Path) -> Path:
     return p.with_name(stem + ".gt.json")
 
 
+def pick_source(path: str | Path, seed: int) -> Path:
+    """The source image of a video: `path` itself, or, for a folder of fundus images, the one
+    the seed picks: the images in natural order, shuffled by a fixed permutation, taken at
+    `seed mod count`, so the same seed gives the same image and consecutive seeds different
+    ones (a loop over seeds renders a set from as many photographs as it has videos)."""
+    p = Path(path).expanduser()
+    if not p.is_dir():
+        return p
+    images = sorted(
+        (f for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_READ_SUFFIXES),
+        key=lambda f: natural_key(f.name),
+    )
+    if not images:
+        kinds = ", ".join(sorted(s.lstrip(".") for s in IMAGE_READ_SUFFIXES))
+        raise InputError(f"folder has no source images ({kinds}): {p}")
+    order = np.random.default_rng(_SOURCE_ORDER_SEED).permutation(len(images))
+    return images[int(order[seed % len(images)])]
+
+
+def _psnr_db(rendered: list[np.ndarray], video: Path) -> dict[str, Any]:
+    """PSNR (dB) of each decoded frame of `video` against the frame as rendered."""
+    values = []
+    with open_frames(video, max_frames=len(rendered)) as frames:
+        for frame, original in zip(frames, rendered, strict=False):
+            if frame.image is None:
+                continue
+            mse = np.mean((frame.image.astype(np.float64) - original) ** 2)
+            values.append(float(10 * np.log10(255.0**2 / max(mse, 1e-10))))
+    if not values:
+        raise OutputError(f"cannot decode the video just written: {video}")
+    return {"mean": float(np.mean(values)), "min": float(np.min(values)), "frames": len(values)}
+
+
 def write_synthetic_video(
     source_path: str | Path, out_path: str | Path, params: SynthParams
 ) -> Path:
     """Render a synthetic video from a fundus image and write it with its ground truth.
 
-    `out_path` ending in .mp4 (codec mp4v) or .avi (MJPG) gives a video file; a path without
-    suffix gives a folder of PNG frames `frame_0000.png`, ... Returns the ground-truth path.
+    `source_path` is an image, or a folder of them: then `pick_source` chooses one by the seed,
+    and the ground truth's `source` names the image used. `out_path` ending in .mp4 (codec
+    mp4v) or .avi (MJPG) gives a video file, whose compression loss against the rendered frames
+    is measured (`psnr_db`: mean, min over the first 250 frames); a path without suffix gives a
+    folder of PNG frames `frame_0000.png`, ... (lossless). Returns the ground-truth path.
     """
+    source_path = pick_source(source_path, params.seed)
     source = read_image(source_path)
     out = Path(out_path).expanduser()
     if not out.parent.is_dir():
@@ -381,10 +683,13 @@ def write_synthetic_video(
             raise OutputError(f"cannot open video writer for {out}")
 
     frames_gt = []
+    rendered: list[np.ndarray] = []  # kept to measure the compression loss
     try:
         for i, (frame, H) in enumerate(render_frames(source, params)):
             if writer is not None:
                 writer.write(frame)
+                if i < _PSNR_MAX_FRAMES:
+                    rendered.append(frame)
             elif not cv2.imwrite(str(out / f"frame_{i:04d}.png"), frame):
                 raise OutputError(f"cannot write frame {i} to {out}")
             frames_gt.append({"index": i, "H_frame_to_source": H})
@@ -393,6 +698,11 @@ def write_synthetic_video(
             writer.release()
     if writer is not None and (not out.is_file() or out.stat().st_size == 0):
         raise OutputError(f"video writer produced no file: {out}")
+    compression = (
+        {"codec": _VIDEO_CODECS[suffix], "psnr_db": _psnr_db(rendered, out)}
+        if writer is not None
+        else {"codec": "png"}
+    )
 
     gt = {
         "source": str(source_path),
@@ -401,6 +711,7 @@ def write_synthetic_video(
         "fps": params.fps,
         "seed": params.seed,
         "params": dataclasses.asdict(params),
+        **compression,
         "frames": frames_gt,
     }
     gt_path = write_json(gt_path_for(out), gt)
@@ -453,6 +764,7 @@ __all__ = [
     "estimate_fov_disc",
     "gt_path_for",
     "load_ground_truth",
+    "pick_source",
     "plan_trajectory",
     "relative_homographies",
     "render_frames",

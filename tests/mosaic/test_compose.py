@@ -13,6 +13,7 @@ import pytest
 from mosaic.compose import Canvas
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
+from mosaic.preprocess import scale_matrix
 
 BLENDS = ("feather", "average", "last")
 
@@ -306,3 +307,38 @@ def test_many_frames_growing_in_all_directions(
     out = canvas.render()
     np.testing.assert_array_equal(out[covered[window]], base[window][covered[window]])
     assert canvas.n_frames == len(offsets)
+
+
+@pytest.mark.parametrize("blend", BLENDS)
+def test_content_in_frame_samples_the_canvas_where_a_frame_lands(blend: str) -> None:
+    h, w = 90, 120
+    canvas = Canvas(ComposeConfig(blend=blend, feather_px=15))
+    canvas.add(smooth_tile(0.0, 0.0, h, w), np.eye(3))
+    canvas.add(smooth_tile(40.0, 10.0, h, w), translation(40.0, 10.0))
+    H = similarity(8.0, 0.9, 20.0, 5.0)  # a frame seen rotated and zoomed
+    for scale, shape in ((1.0, (60, 80)), (0.5, (30, 40))):
+        values, valid = canvas.content_in_frame(H, (60, 80, 3), scale)
+        H_out = scale_matrix((60, 80), shape)
+        assert values.shape == valid.shape == shape and values.dtype == np.float32
+        ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+        pts = np.stack([xs, ys, np.ones_like(xs)], axis=-1)
+        to_ref = H @ np.linalg.inv(H_out)
+        ref = pts @ to_ref.T
+        rx, ry = ref[..., 0] / ref[..., 2], ref[..., 1] / ref[..., 2]
+        inside = ((rx > 1) & (rx < w - 2) & (ry > 1) & (ry < h - 2)) | (
+            (rx > 41) & (rx < 40 + w - 2) & (ry > 11) & (ry < 10 + h - 2)
+        )
+        assert valid[inside].all() and not valid[(rx < -1) | (ry < -1) | (ry > 10 + h)].any()
+        truth = smooth_field(rx, ry)[..., 1]
+        assert np.abs(values - truth)[inside].max() < 2.0
+
+
+def test_content_in_frame_lets_nothing_of_the_empty_canvas_in() -> None:
+    canvas = Canvas(ComposeConfig(), channels=1)
+    assert not canvas.content_in_frame(np.eye(3), (10, 10))[1].any()  # empty canvas
+    canvas.add(np.full((50, 60), 200, np.uint8), np.eye(3))
+    values, valid = canvas.content_in_frame(translation(30.3, 20.7), (50, 60))  # half outside
+    assert valid.any() and not valid.all()
+    np.testing.assert_allclose(values[valid], 200.0, atol=1e-3)
+    assert (values[~valid] == 0).all()
+    assert not canvas.content_in_frame(translation(500, 0), (50, 60))[1].any()

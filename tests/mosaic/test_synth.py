@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import cv2
@@ -12,10 +13,14 @@ from mosaic.errors import ConfigError, InputError, OutputError
 from mosaic.io import open_frames, sample_image_path
 from mosaic.synth import (
     SynthParams,
+    _bursts,
+    _disc_kernel,
+    _line_kernel,
     corner_error,
     estimate_fov_disc,
     gt_path_for,
     load_ground_truth,
+    pick_source,
     plan_trajectory,
     relative_homographies,
     render_frames,
@@ -233,3 +238,223 @@ def test_hard_video_revisits_and_blurs(fundus):
         for p in (blurred, sharp)
     ]
     assert all(b < 0.5 * s for b, s in zip(lap[0], lap[1], strict=True))
+
+
+# --------------------------------------------------------------------------------------------
+# Default profile pinned; realistic profile (issue 13)
+# --------------------------------------------------------------------------------------------
+
+# H_frame_to_source of frames 0 and 5 of two 6-frame 240x160 videos (seed 7) from the shipped
+# image, and the mean grey level of their frames, recorded before the realistic profile existed.
+FIRST_H = [1.1048970311, 0.0166777759, 273.0702852622, -0.0271444235, 1.1008225223, 415.847860318,
+           -8.5975e-06, -1.51158e-05, 1.0]  # fmt: skip
+PINNED_H = {
+    "default": [FIRST_H, [1.0131004855, -0.0435927847, 249.374140073, 0.0572141255, 1.012129413,
+                          459.2737729321, 1.80536e-05, 1.03394e-05, 1.0]],
+    "hard": [FIRST_H, [1.0131758833, -0.0435496041, 253.5504683142, 0.0557363409, 1.0112830807,
+                       377.4183698825, 1.80536e-05, 1.03394e-05, 1.0]],
+}  # fmt: skip
+PINNED_MEANS = {
+    "default": [121.1241493, 100.0490278, 108.9509201, 119.7366753, 115.7635851, 125.6692014],
+    "hard": [125.9483854, 100.0490278, 108.9509201, 116.3305556, 112.9645833, 119.1607726],
+}
+
+
+def _centre_motion_px(Hs: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Motion of the frame centre between consecutive frames, in the earlier frame's pixels."""
+    w, h = size
+    centre = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
+    seen = np.einsum("nij,nj->ni", np.linalg.inv(Hs[:-1]), Hs[1:] @ centre)
+    return np.linalg.norm(seen[:, :2] / seen[:, 2:] - centre[:2], axis=1)
+
+
+def _centre_scale_angle(Hs: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Source px per frame px and rotation (degrees) at the frame centre: local, so exact under
+    perspective (the entries of H mix tilt and translation)."""
+    w, h = size
+    pts = np.array([[(w - 1) / 2, (h - 1) / 2, 1.0], [(w + 1) / 2, (h - 1) / 2, 1.0],
+                    [(w - 1) / 2, (h + 1) / 2, 1.0]])  # fmt: skip
+    mapped = np.einsum("nij,kj->nki", Hs, pts)
+    xy = mapped[..., :2] / mapped[..., 2:]
+    (ax, ay), (bx, by) = (xy[:, 1] - xy[:, 0]).T, (xy[:, 2] - xy[:, 0]).T
+    return np.sqrt(np.abs(ax * by - ay * bx)), np.degrees(np.arctan2(ay, ax))
+
+
+def _flat_source(level: int = 128) -> np.ndarray:
+    """A featureless grey fundus: a uniform disc on black."""
+    img = np.zeros((700, 700, 3), np.uint8)
+    cv2.circle(img, (350, 350), 340, (level, level, level), -1)
+    return img
+
+
+def test_default_and_hard_trajectories_are_unchanged(fundus):
+    for name, make in (("default", SynthParams), ("hard", SynthParams.hard)):
+        params = make(n_frames=6, size=(240, 160), seed=7)
+        Hs = plan_trajectory(fundus, params)
+        expected = np.reshape(PINNED_H[name], (2, 3, 3))
+        np.testing.assert_allclose(Hs[[0, 5]], expected, rtol=1e-8, atol=1e-9)
+        means = [float(f.mean()) for f, _ in render_frames(fundus, params)]
+        assert means == pytest.approx(PINNED_MEANS[name], abs=0.05)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_realistic_motion_magnification_rotation_zoom(source, seed):
+    size = (330, 176)
+    params = SynthParams.realistic(n_frames=80, size=size, seed=seed)
+    Hs = plan_trajectory(source, params)
+    steps = _centre_motion_px(Hs, size)
+    assert steps.min() >= 4.0 and steps.max() <= 25.0, (steps.min(), steps.max())
+    assert 7.0 < np.median(steps) < 15.0
+    assert steps.max() > 2 * steps.min()  # the speed changes along the video
+    assert np.median(np.abs(np.diff(steps))) > 0.5  # and from frame to frame (tremor)
+    # Magnified: the frame width covers 25-45 % of the view's diameter (zoom ±5 % on top).
+    _, _, r = estimate_fov_disc(source)
+    source_px_per_frame_px, angles = _centre_scale_angle(Hs, size)
+    share = size[0] * source_px_per_frame_px / (2 * r)
+    assert share.min() > 0.25 * 0.94 and share.max() < 0.45 * 1.06
+    zoom_ratio = source_px_per_frame_px.max() / source_px_per_frame_px.min()
+    assert 1.03 < zoom_ratio < 1.05 / 0.95 + 0.01  # zoom ±5 %
+    assert 3.0 < np.ptp(angles) < 6.5  # a few degrees
+
+
+def test_realistic_path_reaches_the_rim_of_the_view(source):
+    """Some frames (not all) show the source's black border inside the frame's central disc."""
+    size = (330, 176)
+    params = SynthParams.realistic(n_frames=60, size=size, seed=3, nuisances=False)
+    w, h = size
+    yy, xx = np.mgrid[0:h, 0:w]
+    central = np.hypot(xx - (w - 1) / 2, yy - (h - 1) / 2) < h / 2 - 2  # inside the aperture
+    dark = np.array(
+        [
+            (cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)[central] < 8).mean()
+            for f, _ in render_frames(source, params)
+        ]
+    )
+    assert 0 < (dark > 0.02).sum() < 0.8 * len(dark), dark.round(3)
+    assert 0.05 < dark.max() < 0.5
+    # The default profile never shows it (the existing guarantee).
+    plain = SynthParams(n_frames=60, size=size, seed=3, nuisances=False)
+    assert all((cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)[central] < 8).sum() == 0
+               for f, _ in render_frames(source, plain))  # fmt: skip
+
+
+def test_realistic_vignetting_gain_and_gamma_on_a_flat_source():
+    flat = _flat_source()
+    quiet = dict(
+        n_frames=40, size=(240, 128), seed=3, aperture=False, noise_sigma=0.0, noise_jitter=0.0,
+        rim_overlap=0.0, glare_prob=0.0, glare_burst_prob=0.0,
+    )  # fmt: skip
+    frames = [
+        cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(float)
+        for f, _ in render_frames(flat, SynthParams.realistic(**quiet, gamma_jitter=0.0))
+    ]
+    centre = np.array([f[54:74, 110:130].mean() for f in frames])
+    corners = np.array([np.mean([f[:6, :6].mean(), f[:6, -6:].mean(), f[-6:, :6].mean(),
+                                 f[-6:, -6:].mean()]) for f in frames])  # fmt: skip
+    darkening = 1 - corners / centre
+    assert darkening.min() > 0.12 and 0.3 < darkening.max() < 0.5, darkening.round(2)
+    # Gain: changes from one frame to the next (not only a smooth drift), within ±20 %.
+    gain = centre / 128
+    assert gain.min() > 0.75 and gain.max() < 1.25
+    assert np.ptp(gain) > 0.15
+    assert np.median(np.abs(np.diff(np.log(gain)))) > 0.03
+    # Gamma: the same frames with the per-frame gamma on; gamma = log(on) / log(off).
+    with_gamma = [
+        cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(float)
+        for f, _ in render_frames(flat, SynthParams.realistic(**quiet))
+    ]
+    on = np.array([f[54:74, 110:130].mean() for f in with_gamma])
+    gamma = np.log(on / 255) / np.log(centre / 255)
+    assert gamma.min() > 0.78 and gamma.max() < 1.22 and np.ptp(gamma) > 0.2
+
+
+def test_realistic_blur_kernels_are_centred_and_bursts_last_several_frames(fundus):
+    yy, xx = np.mgrid[0:31, 0:31]
+    for kernel in (_line_kernel(7.3, 0.6), _line_kernel(1.5, 2.0), _disc_kernel(3.7)):
+        mid = kernel.shape[0] // 2
+        assert kernel.sum() == pytest.approx(1.0, abs=1e-5)
+        k = kernel.astype(float)
+        ys, xs = yy[: k.shape[0], : k.shape[1]], xx[: k.shape[0], : k.shape[1]]
+        assert (k * xs).sum() == pytest.approx(mid, abs=1e-5)
+        assert (k * ys).sum() == pytest.approx(mid, abs=1e-5)  # no shift: the truth stays exact
+    bursts = list(_bursts(np.random.default_rng(0), 300, 0.05))
+    assert len(bursts) > 3
+    for (start, ramp), (next_start, _) in itertools.pairwise(bursts):
+        assert 3 <= ramp.size <= 8 and start + ramp.size <= next_start
+        assert ramp.max() <= 1.0 and ramp.min() > 0
+    # A defocus burst blurs the frames it covers; everything else stays the same.
+    base = dict(n_frames=8, size=(200, 120), seed=5, blur_prob=0.0, blur_burst_prob=0.0,
+                glare_prob=0.0, glare_burst_prob=0.0, noise_sigma=0.0, noise_jitter=0.0,
+                aperture=False)  # fmt: skip
+
+    def edge_strength(frame: np.ndarray) -> float:
+        grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY).astype(np.float32)[20:-20, 20:-20]
+        return float(
+            np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1)).mean()
+        )
+
+    defocused, sharp = (
+        np.array(
+            [
+                edge_strength(f)
+                for f, _ in render_frames(
+                    fundus, SynthParams.realistic(**base, defocus_burst_prob=p)
+                )
+            ]
+        )
+        for p in (1.0, 0.0)
+    )
+    assert np.all(defocused < sharp) and defocused.mean() < 0.85 * sharp.mean()
+
+
+def test_realistic_video_file_psnr(tmp_path):
+    """The written video loses 28-37 dB PSNR to compression, as real H.264 video at ~33 dB."""
+    params = SynthParams.realistic(n_frames=10, size=(320, 176), seed=2)
+    out = tmp_path / "real.mp4"
+    gt = json.loads(write_synthetic_video(sample_image_path(), out, params).read_text())
+    assert gt["codec"] == "mp4v" and gt["psnr_db"]["frames"] == 10
+    assert 28.0 < gt["psnr_db"]["min"] <= gt["psnr_db"]["mean"] < 37.0
+    # Checked independently on the first frame.
+    rendered = next(render_frames(cv2.imread(str(sample_image_path())), params))[0]
+    with open_frames(out) as frames:
+        decoded = next(iter(frames)).image
+    psnr = cv2.PSNR(rendered, decoded)
+    assert 28.0 < psnr < 37.0
+    assert gt["params"]["fov_fraction"] == [0.25, 0.45]
+    assert gt["source"] == str(sample_image_path())
+
+
+def test_source_folder_choice_is_deterministic(tmp_path):
+    folder = tmp_path / "sources"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(1, 7):
+        img = np.zeros((200, 240, 3), np.uint8)
+        cv2.circle(img, (120, 100), 95, [int(v) for v in rng.integers(60, 200, 3)], -1)
+        for _ in range(6):  # a few dark "vessels"
+            p, q = rng.integers(40, 180, 2), rng.integers(40, 180, 2)
+            cv2.line(img, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), (20, 30, 40), 3)
+        cv2.imwrite(str(folder / f"eye{k}.png"), img)
+    (folder / "notes.txt").write_text("not an image")
+    picks = [pick_source(folder, seed) for seed in range(12)]
+    assert picks == [pick_source(folder, seed) for seed in range(12)]  # same seed, same source
+    assert len(set(picks[:6])) == 6 and all(p.suffix == ".png" for p in picks)  # all, in turn
+    assert pick_source(sample_image_path(), 5) == sample_image_path()  # a file is itself
+    # The CLI renders from the folder and the ground truth names the image used.
+    from typer.testing import CliRunner
+
+    from mosaic.cli import app
+
+    out = tmp_path / "v.mp4"
+    args = ["synth", str(folder), "--realistic", "--seed", "7", "--frames", "4",
+            "--size", "128x72", "-o", str(out)]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    gt = json.loads(gt_path_for(out).read_text())
+    assert gt["source"] == str(pick_source(folder, 7)) and gt["params"]["rim_overlap"] > 0
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no source images"):
+        pick_source(empty, 0)
+    result = CliRunner().invoke(app, ["synth", "--hard", "--realistic", "-o", str(out)])
+    assert result.exit_code == 2 and "one of --hard and --realistic" in result.output

@@ -132,6 +132,7 @@ def test_entity_paths_with_one_row_per_frame(run):
         "metrics/matches",
         "metrics/inliers",
         "metrics/reproj_error_px",
+        "metrics/quality",
         "metrics/fps",
         "metrics/ms/total",
         "metrics/ms/viewer",
@@ -157,6 +158,9 @@ def test_scalars_equal_the_report(run):
     errors = [row["Scalars:scalars"][0] for _, row in rec["metrics/reproj_error_px"]["rows"]]
     assert math.isnan(errors[0])
     assert errors[1:] == pytest.approx([f["reproj_error_px"] for f in frames[1:]], abs=1e-3)
+    quality = [row["Scalars:scalars"][0] for _, row in rec["metrics/quality"]["rows"]]
+    assert math.isnan(quality[0])  # nothing on the canvas yet
+    assert quality[1:] == pytest.approx([f["quality"] for f in frames[1:]], abs=1e-3)
 
 
 def test_keypoints_classes_and_match_lines(run):
@@ -326,3 +330,16 @@ def test_pure_helpers():
     shift = np.array([[2.0, 0, 10], [0, 2.0, 20], [0, 0, 1]])  # scale 2 then translate
     outline = frame_outline(shift, 4, 3)
     np.testing.assert_allclose(outline, [[9, 19], [17, 19], [17, 25], [9, 25], [9, 19]])
+
+
+def test_status_line_marks_a_flagged_frame():
+    from mosaic.pipeline import FrameEvent, FrameRecord
+    from mosaic.viz import _status_text
+
+    record = FrameRecord(index=7, status="registered", segment=0, n_matches=90, n_inliers=60)
+    record.reproj_error_px, record.quality = 1.25, 0.91
+    text = _status_text(FrameEvent(record, None, None, None, None, None, None))
+    assert "FLAGGED" not in text and "quality 0.91" in text
+    record.quality, record.flagged = 0.12, True
+    text = _status_text(FrameEvent(record, None, None, None, None, None, None))
+    assert text.startswith("frame 7 registered, FLAGGED") and "quality 0.12" in text
