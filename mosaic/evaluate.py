@@ -12,7 +12,9 @@ over thresholds 1..25 px, its 0..25 integral variant, per-category AUCs and mAUC
 Videos (`evaluate_video`): `MosaicBuilder` runs the video with `on_failure = "skip"`; frames are
 checked against the synthetic ground truth (`*.gt.json`) when there is one: each frame's placement
 against the first frame (corner error, drift) and against the frame it was registered to (step
-error); the report's motion models are counted per video.
+error); the report's motion models are counted per video, and its per-frame quality score is
+compared with the corner error (rank correlation, bad frames flagged, good frames flagged). Each
+run's full report is kept under `reports/`.
 
 Outputs (`write_pair_outputs`, `write_video_outputs`): CSV and JSON tables, per-pair/per-video
 rows and PNG plots. Pure metric definitions live in `glampoints.metrics`, not here.
@@ -44,6 +46,7 @@ from mosaic.io import IMAGE_READ_SUFFIXES, open_frames, write_json
 from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicBuilder
 from mosaic.preprocess import prepare, scale_matrix
+from mosaic.quality import spearman
 from mosaic.registration import estimate_homography
 from mosaic.synth import corner_error, gt_path_for, load_ground_truth, relative_homographies
 
@@ -585,6 +588,10 @@ class VideoResult:
     fps: float
     step_median_px: float = math.nan  # corner error of each frame relative to its reference
     step_p90_px: float = math.nan
+    quality_rho: float = math.nan  # Spearman of quality and corner error (negative: it works)
+    bad_frames: float = math.nan  # frames more than 10 px off the truth (nan: no truth)
+    bad_caught: float = math.nan  # fraction of them flagged by the quality score
+    good_flagged: float = math.nan  # fraction of the frames within 10 px flagged
     model_counts: dict[str, int] = field(default_factory=dict)  # registered frames per model
     errors: list[tuple[int, float]] = field(default_factory=list, repr=False)  # (index, px)
     step_errors: list[tuple[int, float]] = field(default_factory=list, repr=False)
@@ -707,6 +714,40 @@ def _model_counts(frames: list[dict[str, Any]]) -> dict[str, int]:
     return counts
 
 
+def _quality_vs_error(
+    frames: list[dict[str, Any]], errors: dict[int, float] | None
+) -> dict[str, float]:
+    """How the report's per-frame `quality` and `flagged` predict the corner error (`errors`).
+
+    Over the frames with an error but the reference frame (error 0 by construction, never
+    scored): `quality_rho`, the Spearman correlation of score and error over the scored ones
+    (negative: lower score, larger error); `bad_frames`, those more than
+    ACCURATE_CORNER_ERROR_PX off; `bad_caught`, the fraction of them flagged (a frame without a
+    score is never flagged: a miss); `good_flagged`, the fraction of the others flagged. NaN
+    without errors, or (but `bad_frames`) when no frame has a score (older reports).
+    """
+    nan = math.nan
+    if errors is None:
+        return {"quality_rho": nan, "bad_frames": nan, "bad_caught": nan, "good_flagged": nan}
+    entries = {f["index"]: f for f in frames}
+    judged = sorted(errors)[1:]  # the first is the reference frame
+    error = np.array([errors[i] for i in judged], np.float64)
+    score = np.array([entries[i].get("quality") for i in judged], np.float64)  # None -> nan
+    flagged = np.array([bool(entries[i].get("flagged")) for i in judged], bool)
+    bad = error > ACCURATE_CORNER_ERROR_PX
+    scored = bool(np.isfinite(score).any())
+
+    def flagged_share(group: np.ndarray) -> float:
+        return float(flagged[group].mean()) if scored and group.any() else nan
+
+    return {
+        "quality_rho": spearman(score, error),
+        "bad_frames": float(bad.sum()),
+        "bad_caught": flagged_share(bad),
+        "good_flagged": flagged_share(~bad),
+    }
+
+
 def _leading_accurate(frames: list[dict[str, Any]], errors: dict[int, float] | None) -> int:
     """Registered (and accurate, when errors are given) frames from the start until a failure."""
     count = 0
@@ -721,6 +762,19 @@ def _leading_accurate(frames: list[dict[str, Any]], errors: dict[int, float] | N
     return count
 
 
+def _unique_stems(videos: Sequence[Path]) -> list[str]:
+    """Each video's file stem (a frame folder's name), made unique with "-2", "-3", ..."""
+    stems: list[str] = []
+    for video in videos:
+        stem = base = video.name if video.is_dir() else video.stem
+        k = 1
+        while stem in stems:
+            k += 1
+            stem = f"{base}-{k}"
+        stems.append(stem)
+    return stems
+
+
 def _reread(path: Path, step: int, max_frames: int) -> Callable[[], Iterator[tuple[int, Any]]]:
     """A second pass over the video, for the pipeline's re-rendering from refined poses."""
 
@@ -733,12 +787,17 @@ def _reread(path: Path, step: int, max_frames: int) -> Callable[[], Iterator[tup
 
 
 def evaluate_video(
-    path: Path, config: Config, extractor: FeatureExtractor, progress: bool = False
+    path: Path,
+    config: Config,
+    extractor: FeatureExtractor,
+    progress: bool = False,
+    report_path: Path | None = None,
 ) -> VideoResult:
     """Run the pipeline over a video (failed frames skipped) and score it against its truth.
 
     The frames' poses are the ones `mosaic build` reports: after the strategy's refinement
-    (keyframes: pose graph) and re-rendering, so the video is read twice.
+    (keyframes: pose graph) and re-rendering, so the video is read twice. With `report_path`,
+    that report (with the input, as `mosaic build` writes it) is saved there as JSON.
     """
     config = with_overrides(config, pipeline={"on_failure": "skip"})
     builder = MosaicBuilder(config, extractor=extractor)
@@ -754,8 +813,11 @@ def evaluate_video(
         for _ in builder.stream(frames):
             pass
         size = (source.info.width, source.info.height)
+        info = source.info
     reread = _reread(path, config.pipeline.step, config.pipeline.max_frames)
     report = builder.finish(reread=reread).report  # refined poses, as `mosaic build` reports
+    if report_path is not None:
+        write_json(report_path, {"input": dataclasses.asdict(info), **report})
     frames, summary = report["frames"], report["summary"]
     gt_file = gt_path_for(path)
     errors: dict[int, float] | None = None
@@ -792,6 +854,7 @@ def evaluate_video(
         fps=float(summary["fps"]),
         step_median_px=float(np.median(step_values)) if step_values.size else math.nan,
         step_p90_px=float(np.percentile(step_values, 90)) if step_values.size else math.nan,
+        **_quality_vs_error(frames, errors),
         model_counts=_model_counts(frames),
         errors=sorted(errors.items()) if errors else [],
         step_errors=sorted(steps.items()),
@@ -809,6 +872,10 @@ VIDEO_MEAN_KEYS = (
     "drift_px_per_frame",
     "step_median_px",
     "step_p90_px",
+    "quality_rho",
+    "bad_frames",
+    "bad_caught",
+    "good_flagged",
     "mean_inliers",
     "fps",
 )
@@ -825,6 +892,10 @@ VIDEO_COLUMNS = (
     ("drift_px_per_frame", "drift px/fr", ".3f"),
     ("step_median_px", "step med px", ".2f"),
     ("step_p90_px", "step p90 px", ".2f"),
+    ("quality_rho", "quality rho", ".2f"),
+    ("bad_frames", "bad >10px", ".1f"),
+    ("bad_caught", "bad caught", ".2f"),
+    ("good_flagged", "good flagged", ".2f"),
     ("models", "models", ""),
     ("fps", "fps", ".1f"),
 )
@@ -959,21 +1030,28 @@ def run_video_evaluation(
     progress: bool = False,
     strategies: Sequence[str] = ("keyframes", "chain"),
 ) -> tuple[list[VideoResult], list[dict[str, Any]]]:
-    """Evaluate every detector with every strategy on every video; write tables and plots."""
+    """Evaluate every detector with every strategy on every video; write tables and plots.
+
+    Each run's report goes to `reports/<video stem>__<detector>__<strategy>.json` in `out_dir`
+    (listed in the same order as the results under the JSON's `meta.reports`).
+    """
     videos = find_videos(paths)
-    _prepare_out(out_dir)
+    report_dir = _prepare_out(Path(out_dir).expanduser() / "reports")
     extractors = make_extractors(config, detectors, explicit)
-    results = []
-    for video in videos:
-        for cfg, extractor in extractors.values():
+    results, reports = [], []
+    for video, stem in zip(videos, _unique_stems(videos), strict=True):
+        for name, (cfg, extractor) in extractors.items():
             for strategy in strategies:
                 cfg_strategy = with_overrides(cfg, pipeline={"strategy": strategy})
-                results.append(evaluate_video(video, cfg_strategy, extractor, progress))
+                report = report_dir / f"{stem}__{name}__{strategy}.json"
+                results.append(evaluate_video(video, cfg_strategy, extractor, progress, report))
+                reports.append(str(report.relative_to(report_dir.parent)))
     summary = summarize_videos(results)
     meta = {
         "videos": [str(v) for v in videos],
         "detectors": list(extractors),
         "config": dataclasses.asdict(config),
+        "reports": reports,
     }
     write_video_outputs(results, summary, out_dir, meta)
     return results, summary

@@ -47,23 +47,9 @@ class Refinement:
     dropped_loops: int = 0
 
 
-def _map(params: np.ndarray, node: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Points xy (M, 2) mapped by the homographies params[node] (8 free entries each, H22 = 1),
-    and the derivative of each mapped point by those entries (M, 2, 8)."""
-    h = params[node]
-    x, y = xy[:, 0], xy[:, 1]
-    w = h[:, 6] * x + h[:, 7] * y + 1.0
-    px = (h[:, 0] * x + h[:, 1] * y + h[:, 2]) / w
-    py = (h[:, 3] * x + h[:, 4] * y + h[:, 5]) / w
-    z = np.zeros_like(x)
-    J = np.stack(
-        [
-            np.stack([x / w, y / w, 1 / w, z, z, z, -px * x / w, -px * y / w], 1),
-            np.stack([z, z, z, x / w, y / w, 1 / w, -py * x / w, -py * y / w], 1),
-        ],
-        axis=1,
-    )
-    return np.stack([px, py], 1), J
+def _matrices(params: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) homographies from their 8 free entries (H22 = 1)."""
+    return np.concatenate([params, np.ones((len(params), 1))], 1).reshape(-1, 3, 3)
 
 
 @dataclass(frozen=True)
@@ -72,57 +58,66 @@ class _Problem:
 
     a: np.ndarray  # (M,) node index (row of the params array) of the point's frame
     b: np.ndarray  # (M,) node index of its match's frame
-    xy_a: np.ndarray  # (M, 2)
-    xy_b: np.ndarray  # (M, 2)
-    scale: np.ndarray  # (M,) weight / (pixel size of b in the reference), from the start poses
+    xy_a: np.ndarray  # (M, 3) homogeneous, normalised coordinates
+    xy_b: np.ndarray  # (M, 2) normalised coordinates
+    scale: np.ndarray  # (M,) the constraint's weight, times the normalisation back to pixels
     constraint: np.ndarray  # (M,) which constraint each point belongs to
 
 
 def _problem(
-    nodes: list[int], P0: np.ndarray, constraints: list[Constraint], N: np.ndarray, S: float
+    constraints: list[Constraint], row: dict[int, int], N: np.ndarray, S: float
 ) -> _Problem:
     """The stacked problem in normalised coordinates (points mapped by N, residuals times S,
     so that they stay in pixels)."""
-    row = {k: i for i, k in enumerate(nodes)}
     sizes = [len(c.xy_a) for c in constraints]
-    a = np.repeat([row[c.a] for c in constraints], sizes)
-    b = np.repeat([row[c.b] for c in constraints], sizes)
-    weight = np.repeat([c.weight for c in constraints], sizes)
-    # a pixel of b spans about sqrt|det| reference pixels: residuals in b's own pixels give the
-    # solver no reward for shrinking the mosaic away from the fixed frame
-    pixel = np.sqrt(np.abs(P0[:, 0] * P0[:, 4] - P0[:, 1] * P0[:, 3]))
+    xy_a = np.concatenate([c.xy_a for c in constraints]).astype(np.float64) * N[0, 0] + N[:2, 2]
+    xy_b = np.concatenate([c.xy_b for c in constraints]).astype(np.float64) * N[0, 0] + N[:2, 2]
     return _Problem(
-        a,
-        b,
-        np.concatenate([c.xy_a for c in constraints]).astype(np.float64) * N[0, 0] + N[:2, 2],
-        np.concatenate([c.xy_b for c in constraints]).astype(np.float64) * N[0, 0] + N[:2, 2],
-        S * weight / np.maximum(pixel[b], 1e-9),
+        np.repeat([row[c.a] for c in constraints], sizes),
+        np.repeat([row[c.b] for c in constraints], sizes),
+        np.hstack([xy_a, np.ones((len(xy_a), 1))]),
+        xy_b,
+        S * np.repeat([c.weight for c in constraints], sizes),
         np.repeat(np.arange(len(constraints)), sizes),
     )
 
 
+def _transfer(params: np.ndarray, pb: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """Each point of a mapped a → ref → b (homogeneous, (M, 3)) and inv(P_b) per point."""
+    P = _matrices(params)
+    B_inv = np.linalg.inv(P)[pb.b]
+    u = np.einsum("mij,mj->mi", B_inv, np.einsum("mij,mj->mi", P[pb.a], pb.xy_a))
+    return u, B_inv
+
+
 def _residuals(params: np.ndarray, pb: _Problem) -> np.ndarray:
-    """Each point of a and its match in b, both mapped into the reference, apart (scaled)."""
-    ref_a, _ = _map(params, pb.a, pb.xy_a)
-    ref_b, _ = _map(params, pb.b, pb.xy_b)
-    return ((ref_a - ref_b) * pb.scale[:, None]).ravel()
+    """Transfer errors in b's own pixels: a point of a, mapped a → ref → b, against its match
+    in b. Measured in image pixels rather than reference pixels, the residual gives the solver
+    no reward for shrinking the mosaic away from the fixed frame."""
+    u, _ = _transfer(params, pb)
+    return ((u[:, :2] / u[:, 2:] - pb.xy_b) * pb.scale[:, None]).ravel()
 
 
 def _jacobian(params: np.ndarray, pb: _Problem, column: np.ndarray) -> csr_matrix:
     """Sparse derivative of the residuals by the free nodes' parameters (column[node] is the
-    node's first column, -1 for the fixed node)."""
-    _, Ja = _map(params, pb.a, pb.xy_a)
-    _, Jb = _map(params, pb.b, pb.xy_b)
+    node's first column, -1 for the fixed node). With u = inv(P_b) P_a x: du/dP_a[i, j] =
+    inv(P_b)[:, i] x_j and du/dP_b[i, j] = -inv(P_b)[:, i] u_j."""
+    u, B_inv = _transfer(params, pb)
     m = len(pb.a)
+    w = u[:, 2]
+    d_pi = np.zeros((m, 2, 3))  # derivative of the projection (u1/u3, u2/u3) by u
+    d_pi[:, 0, 0] = d_pi[:, 1, 1] = 1 / w
+    d_pi[:, :, 2] = -u[:, :2] / w[:, None] ** 2
+    G = np.einsum("mdk,mki->mdi", d_pi, B_inv) * pb.scale[:, None, None]
+    Ja = np.einsum("mdi,mj->mdij", G, pb.xy_a).reshape(m, 2, 9)[:, :, :8]
+    Jb = -np.einsum("mdi,mj->mdij", G, u).reshape(m, 2, 9)[:, :, :8]
     rows = np.repeat(np.arange(2 * m), 8).reshape(m, 2, 8)
     blocks = []
-    for node, J, sign in ((pb.a, Ja, 1.0), (pb.b, Jb, -1.0)):
+    for node, J in ((pb.a, Ja), (pb.b, Jb)):
         first = column[node]
         keep = first >= 0
-        cols = first[:, None, None] + np.arange(8)[None, None, :]
-        cols = np.broadcast_to(cols, (m, 2, 8))
-        vals = sign * J * pb.scale[:, None, None]
-        blocks.append((rows[keep].ravel(), cols[keep].ravel(), vals[keep].ravel()))
+        cols = np.broadcast_to(first[:, None, None] + np.arange(8)[None, None, :], (m, 2, 8))
+        blocks.append((rows[keep].ravel(), cols[keep].ravel(), J[keep].ravel()))
     r, c, v = (np.concatenate(parts) for parts in zip(*blocks, strict=True))
     n_cols = 8 * int((column >= 0).sum())
     return coo_matrix((v, (r, c)), shape=(2 * m, n_cols)).tocsr()
@@ -151,7 +146,7 @@ def _solve(
     N_inv = np.linalg.inv(N)
     normalised = [N @ poses[k] @ N_inv for k in nodes]
     P0 = np.stack([(H / H[2, 2]).ravel()[:8] for H in normalised])
-    pb = _problem(nodes, P0, constraints, N, S)
+    pb = _problem(constraints, {k: i for i, k in enumerate(nodes)}, N, S)
     free = np.array([k != fixed for k in nodes])
     column = np.full(len(nodes), -1)
     column[free] = 8 * np.arange(int(free.sum()))

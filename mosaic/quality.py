@@ -150,11 +150,13 @@ def _first_segment(report: dict[str, Any]) -> int:
     raise ValueError("the report has no registered frame")
 
 
-def _spearman(x: np.ndarray, y: np.ndarray) -> float:
-    """Spearman rank correlation (average ranks for ties) of the finite pairs; NaN under 3."""
+def spearman(x: np.ndarray, y: np.ndarray) -> float:
+    """Spearman rank correlation (average ranks for ties) of the finite pairs; NaN under 3 or
+    when either side is constant."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     finite = np.isfinite(x) & np.isfinite(y)
     x, y = x[finite], y[finite]
-    if len(x) < 3:
+    if len(x) < 3 or np.ptp(x) == 0 or np.ptp(y) == 0:
         return math.nan
     from scipy.stats import spearmanr
 
@@ -264,8 +266,8 @@ def score_vs_error(
     return {
         "n_frames": len(rows),
         "threshold": threshold,
-        "spearman": _spearman(scores, corners),
-        "spearman_misalignment": _spearman(scores, misaligned),
+        "spearman": spearman(scores, corners),
+        "spearman_misalignment": spearman(scores, misaligned),
         "corner": _catch(scores, corners, threshold, bad_error_px),
         "misalignment": _catch(scores, misaligned, threshold, bad_misalignment_px),
         "frames": rows,

@@ -23,7 +23,9 @@ from mosaic.evaluate import (
     _frame_references,
     _leading_accurate,
     _model_counts,
+    _quality_vs_error,
     _step_errors,
+    _unique_stems,
     _video_errors,
     evaluate_pair,
     format_models,
@@ -35,7 +37,13 @@ from mosaic.evaluate import (
     write_video_outputs,
 )
 from mosaic.io import sample_image_path
-from mosaic.synth import SynthParams, relative_homographies, write_synthetic_video
+from mosaic.synth import (
+    SynthParams,
+    gt_path_for,
+    load_ground_truth,
+    relative_homographies,
+    write_synthetic_video,
+)
 from tests.mosaic.test_datasets import make_fire_fixture
 
 runner = CliRunner()
@@ -151,6 +159,52 @@ def test_video_errors_and_frames_until_failure_by_hand():
     assert _leading_accurate(frames, errors) == 1
 
 
+def _scored_frames(qualities, flagged):
+    """Report entries 0..n: frame 0 the unscored reference, then the given scores and flags."""
+    frames = [{"index": 0, "status": "registered", "quality": None, "flagged": False}]
+    for i, (q, f) in enumerate(zip(qualities, flagged, strict=True), start=1):
+        frames.append({"index": i, "status": "registered", "quality": q, "flagged": f})
+    return frames
+
+
+def test_quality_vs_error_by_hand():
+    errors = {0: 0.0, 1: 1.0, 2: 3.0, 3: 8.0, 4: 12.0, 5: 20.0, 6: 40.0, 7: 50.0}
+    # The score falls as the error grows; frame 7 (50 px off) has no score, so no flag either.
+    qualities = [0.9, 0.8, 0.7, 0.6, 0.5, 0.4, None]
+    flagged = [False, False, True, False, True, True, False]  # 3 good, 4 bad but missed
+    check = _quality_vs_error(_scored_frames(qualities, flagged), errors)
+    assert check["quality_rho"] == pytest.approx(-1.0)  # frames 1-6; 0 is the reference
+    assert check["bad_frames"] == 4  # frames 4, 5, 6, 7 (> 10 px)
+    assert check["bad_caught"] == pytest.approx(2 / 4)  # 5 and 6 flagged
+    assert check["good_flagged"] == pytest.approx(1 / 3)  # 3 of the good frames 1, 2, 3
+
+    # Ties and a frame scored high though far off: the rank correlation by hand.
+    qualities = [0.9, 0.9, 0.7, 0.95, 0.5, 0.4, 0.3]
+    check = _quality_vs_error(_scored_frames(qualities, [False] * 7), errors)
+    rank_q = np.array([5.5, 5.5, 4, 7, 3, 2, 1])  # ties share the mean rank
+    rank_e = np.arange(1, 8)
+    assert check["quality_rho"] == pytest.approx(np.corrcoef(rank_q, rank_e)[0, 1])
+    assert check["bad_caught"] == 0.0 and check["good_flagged"] == 0.0
+
+
+def test_quality_vs_error_without_scores_or_truth():
+    errors = {0: 0.0, 1: 2.0, 2: 15.0, 3: 30.0}
+    older = [{"index": i, "status": "registered"} for i in range(4)]  # no "quality" keys
+    check = _quality_vs_error(older, errors)
+    assert check["bad_frames"] == 2
+    assert all(math.isnan(check[k]) for k in ("quality_rho", "bad_caught", "good_flagged"))
+    constant = _quality_vs_error(_scored_frames([0.5, 0.5, 0.5], [False] * 3), errors)
+    assert math.isnan(constant["quality_rho"]) and constant["good_flagged"] == 0.0
+    assert all(math.isnan(v) for v in _quality_vs_error(older, None).values())
+
+
+def test_unique_stems(tmp_path):
+    (tmp_path / "b").mkdir()
+    (tmp_path / "clip.v2").mkdir()
+    videos = [tmp_path / "a.mp4", tmp_path / "b" / "a.avi", tmp_path / "b" / "a.mp4"]
+    assert _unique_stems([*videos, tmp_path / "clip.v2"]) == ["a", "a-2", "a-3", "clip.v2"]
+
+
 def _rigid(angle_deg: float, tx: float, ty: float) -> np.ndarray:
     a = np.deg2rad(angle_deg)
     c, s = np.cos(a), np.sin(a)
@@ -255,12 +309,19 @@ def test_video_tables_and_files_carry_step_errors_and_models(tmp_path):
             step_median_px=1.0,
             step_p90_px=3.0,
             model_counts={"similarity": 8, "affine": 1, "homography": 0},
+            quality_rho=-0.8,
+            bad_frames=4.0,
+            bad_caught=0.5,
+            good_flagged=0.1,
         ),
         _video_result(
             "sift/chain",
             step_median_px=2.0,
             step_p90_px=5.0,
             model_counts={"similarity": 6, "homography": 3},
+            quality_rho=-0.6,
+            bad_frames=0.0,  # nothing to catch: bad_caught stays nan
+            good_flagged=0.0,
         ),
         _video_result("orb/chain"),  # an older report: no references to score, no models
     ]
@@ -270,11 +331,16 @@ def test_video_tables_and_files_carry_step_errors_and_models(tmp_path):
     assert sift["model_similarity"] == 7.0 and sift["model_affine"] == 0.5
     assert sift["model_homography"] == 1.5 and sift["model_translation"] == 0.0
     assert math.isnan(orb["step_median_px"]) and orb["model_similarity"] == 0.0
+    assert sift["quality_rho"] == pytest.approx(-0.7) and sift["bad_frames"] == 2.0
+    assert sift["bad_caught"] == 0.5 and sift["good_flagged"] == pytest.approx(0.05)
+    assert math.isnan(orb["quality_rho"]) and math.isnan(orb["bad_caught"])
 
     text = format_video_tables(results, summary)
     assert "step med px" in text and "step p90 px" in text
     assert "sim 8 / aff 1" in text and "sim 6 / hom 3" in text
     assert "sim 7.0 / aff 0.5 / hom 1.5" in text  # the mean over videos
+    assert "quality rho" in text and "bad caught" in text and "good flagged" in text
+    assert "-0.70" in text and "0.05" in text
 
     write_video_outputs(results, summary, tmp_path)
     with (tmp_path / "videos.csv").open() as fh:
@@ -282,6 +348,9 @@ def test_video_tables_and_files_carry_step_errors_and_models(tmp_path):
     assert [r["step_p90_px"] for r in rows] == ["3", "5", ""]
     assert [r["model_similarity"] for r in rows] == ["8", "6", "0"]
     assert [r["model_translation"] for r in rows] == ["0", "0", "0"]
+    assert [r["quality_rho"] for r in rows] == ["-0.8", "-0.6", ""]
+    assert [r["bad_caught"] for r in rows] == ["0.5", "", ""]
+    assert [r["good_flagged"] for r in rows] == ["0.1", "0", ""]
     assert "model_counts" not in rows[0] and "step_errors" not in rows[0]
     with (tmp_path / "video_summary.csv").open() as fh:
         assert next(csv.DictReader(fh))["model_homography"] == "1.5"
@@ -289,6 +358,8 @@ def test_video_tables_and_files_carry_step_errors_and_models(tmp_path):
     assert document["videos"][1]["model_counts"] == {"similarity": 6, "homography": 3}
     assert document["videos"][2]["model_counts"] == {}
     assert document["summary"][0]["step_median_px"] == 1.5
+    assert document["summary"][0]["bad_caught"] == 0.5
+    assert document["videos"][1]["bad_caught"] is None  # nan in JSON
 
 
 @pytest.fixture(scope="module")
@@ -330,6 +401,27 @@ def test_video_evaluation_end_to_end(small_video, tmp_path):
         assert (out / name).stat().st_size > 0
     assert (out / "video_error.png").read_bytes()[:4] == b"\x89PNG"
     assert math.isclose(document["summary"][0]["frames_until_failure"], 6.0)
+
+    # Quality against the truth: a clean video has no bad frame to catch and none flagged.
+    assert with_truth["bad_frames"] == 0 and with_truth["bad_caught"] is None
+    assert with_truth["good_flagged"] == 0.0
+    assert without["bad_frames"] is None and without["quality_rho"] is None
+
+    # Every run's full report, named video stem, detector, strategy; the one that was scored.
+    names = ["clip__sift__keyframes", "clip__sift__chain", "copy__sift__keyframes"]
+    names.append("copy__sift__chain")
+    assert document["meta"]["reports"] == [f"reports/{n}.json" for n in names]
+    assert sorted(p.name for p in (out / "reports").iterdir()) == sorted(f"{n}.json" for n in names)
+    report = json.loads((out / "reports" / "clip__sift__keyframes.json").read_text())
+    assert report["input"]["path"] == str(small_video) and report["input"]["width"] == 240
+    assert report["summary"]["strategy"] == "keyframes" and len(report["frames"]) == 6
+    gt = load_ground_truth(gt_path_for(small_video))
+    errors = _video_errors(report["frames"], gt, (240, 160))
+    assert [[i, pytest.approx(e, abs=1e-3)] for i, e in sorted(errors.items())] == with_truth[
+        "errors"
+    ]
+    check = _quality_vs_error(report["frames"], errors)
+    assert check["good_flagged"] == 0.0 and check["bad_frames"] == 0
 
 
 def test_video_evaluation_reports_user_errors(tmp_path):
