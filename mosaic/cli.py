@@ -33,6 +33,7 @@ from mosaic.io import (
     write_json,
 )
 from mosaic.pipeline import MosaicBuilder, MosaicResult, register_pair
+from mosaic.registration import MODELS
 from mosaic.synth import SynthParams, pick_source, write_synthetic_video
 from mosaic.viz import VIEWER_MODES, RerunViewer, make_viewer
 
@@ -313,9 +314,9 @@ def synth(
 
 
 def _pair_result(
-    fixed: Path, moving: Path, config: Config, extractor: FeatureExtractor
+    fixed: Path, moving: Path, config: Config, extractor: FeatureExtractor, model: str
 ) -> dict[str, Any]:
-    registration = register_pair(read_image(fixed), read_image(moving), config, extractor)
+    registration = register_pair(read_image(fixed), read_image(moving), config, extractor, model)
     H = registration.H_cur_to_prev
     return {
         "fixed": str(fixed),
@@ -323,6 +324,7 @@ def _pair_result(
         "status": "registered" if registration.ok else "failed",
         "reason": registration.reason,
         "H_moving_to_fixed": None if H is None else np.asarray(H).tolist(),
+        "model": registration.model if registration.ok else None,
         "n_matches": registration.n_matches,
         "n_inliers": registration.n_inliers,
     }
@@ -349,26 +351,40 @@ def register(
     config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
     detector: Annotated[str | None, typer.Option(help=f"{', '.join(DETECTORS)}.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+    model: Annotated[
+        str,
+        typer.Option(
+            help="Motion model: auto (the model with the least expected corner error: "
+            "photographs of a curved retina from two viewpoints need more than a similarity), "
+            f"or one of {', '.join(MODELS)}."
+        ),
+    ] = "auto",
 ) -> None:
     """Register MOVING onto FIXED and print H_moving_to_fixed (full-resolution pixels)."""
     _setup_logging(False)
     with _user_errors():
+        if model not in ("auto", *MODELS):
+            raise InputError(f"--model must be auto or one of {', '.join(MODELS)}, got {model!r}")
         config = _config(config_path, detector)
         extractor = FeatureExtractor(config.features)
         if pairs is not None:
             for fixed_path, moving_path in _read_pairs(pairs):
-                typer.echo(json.dumps(_pair_result(fixed_path, moving_path, config, extractor)))
+                result = _pair_result(fixed_path, moving_path, config, extractor, model)
+                typer.echo(json.dumps(result))
             return
         if fixed is None or moving is None:
             raise InputError("give FIXED and MOVING images, or --pairs PAIRS.csv")
-        result = _pair_result(fixed, moving, config, extractor)
+        result = _pair_result(fixed, moving, config, extractor, model)
         if as_json:
             typer.echo(json.dumps(result, indent=2))
             return
         typer.echo(
             f"status: {result['status']}" + (f" ({result['reason']})" * bool(result["reason"]))
         )
-        typer.echo(f"matches: {result['n_matches']}  inliers: {result['n_inliers']}")
+        typer.echo(
+            f"model: {result['model']}  matches: {result['n_matches']}  "
+            f"inliers: {result['n_inliers']}"
+        )
         if result["H_moving_to_fixed"] is not None:
             H = np.array(result["H_moving_to_fixed"])
             typer.echo(

@@ -74,8 +74,9 @@ class RegistrationConfig:
     confidence: float = 0.995
     min_inliers: int = 20  # fewer RANSAC inliers than this is a failure (a wrong placement
     # smears the mosaic; a skipped frame costs nothing)
-    model: str = "auto"  # auto (least expected corner error) | translation | similarity | affine
-    # | homography; the chain strategy takes auto as the paper's homography
+    model: str = "similarity"  # similarity | auto (least expected corner error) | translation |
+    # affine | homography. Video frames: similarity, measured best on realistic video (richer
+    # models fit the matches' errors); `mosaic register` selects (auto) unless --model says
     refine: bool = True  # re-weighted least squares of the model on all matches within threshold
 
 

@@ -533,10 +533,15 @@ def build_report(
 
 
 def register_pair(
-    fixed: np.ndarray, moving: np.ndarray, config: Config, extractor: FeatureExtractor
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    config: Config,
+    extractor: FeatureExtractor,
+    model: str | None = None,
 ) -> Registration:
     """Register one image pair: the result's `H_cur_to_prev` maps `moving` into `fixed` (full
-    size pixels; each image is registered at its working size, `[preprocess] max_side_px`)."""
+    size pixels; each image is registered at its working size, `[preprocess] max_side_px`);
+    `model` (default `[registration] model`) as in `estimate_motion`."""
     fixed_work, S_fixed = to_working_size(fixed, config.preprocess.max_side_px)
     moving_work, S_moving = to_working_size(moving, config.preprocess.max_side_px)
     features_fixed = extractor(prepare(fixed_work, config.preprocess))
@@ -549,6 +554,7 @@ def register_pair(
         features_fixed.xy[matches.idx_a],
         config.registration,
         moving_work.shape[:2],
+        model,
     )
     if reg.H_cur_to_prev is None or (S_fixed is None and S_moving is None):
         return reg

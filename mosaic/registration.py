@@ -219,7 +219,12 @@ def _to_norm(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def select_model(
-    a: np.ndarray, b: np.ndarray, w: np.ndarray, M_h: np.ndarray, corners: np.ndarray
+    a: np.ndarray,
+    b: np.ndarray,
+    w: np.ndarray,
+    M_h: np.ndarray,
+    corners: np.ndarray,
+    inflation: float = 1.0,
 ) -> tuple[_Fit, float]:
     """The model of the hierarchy with the least expected squared corner error (normalised
     points a → b, weights w, the RANSAC homography M_h as a start); also its corner sd."""
@@ -233,7 +238,7 @@ def select_model(
         f = ok[richest[-1]]
         return f, float("nan")
     dof = max(2 * len(a) - 8, 1)
-    sigma2 = max(top.rss / dof, 1e-12)  # noise of a point, from the most general model
+    sigma2 = max(top.rss / dof, 1e-12) * inflation  # noise of a point, from the most general model
     top_xy, top_var = top.predict(corners)
     best, best_cost = top, float(np.mean(sigma2 * top_var))
     for m in MODELS[:-1]:
@@ -251,6 +256,17 @@ def select_model(
         if cost < best_cost:
             best, best_cost = f, cost
     return best, float(np.sqrt(best_cost))
+
+
+CELL_PX = 48.0  # matches closer than this share their localisation error (descriptor support)
+
+
+def _inflation(a: np.ndarray, T: np.ndarray) -> float:
+    """Variance inflation: matches' errors are correlated over a descriptor's support, so the
+    points count only as many as the cells of CELL_PX they occupy."""
+    cells = np.floor(a / (CELL_PX * T[0, 0])).astype(np.int64)
+    n_eff = len(np.unique(cells[:, 0] * 100003 + cells[:, 1]))
+    return max(len(a) / max(n_eff, 1), 1.0)
 
 
 def estimate_motion(
@@ -286,7 +302,7 @@ def estimate_motion(
             if len(a) < 4:
                 break
             if model == "auto" and round_ < 2:  # select on the consensus, then on its refinement
-                fit, corner_sd = select_model(a, b, w, M, corners)
+                fit, corner_sd = select_model(a, b, w, M, corners, _inflation(a, T))
             else:
                 fit = _fit(fit.model if fit else model, a, b, w, M)
                 if fit is None:

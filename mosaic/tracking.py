@@ -123,8 +123,7 @@ class ChainTracker:
     def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
         if self._prev is None:
             return Track(np.eye(3))
-        model = "homography" if self._config.registration.model == "auto" else None
-        matches, registration = _register(self._prev, features, self._config, timer, shape, model)
+        matches, registration = _register(self._prev, features, self._config, timer, shape)
         H = self._H_prev_to_ref @ registration.H_cur_to_prev if registration.ok else None
         return Track(
             H, registration, matches, self._prev, attempts=1, reference_index=self._prev_index

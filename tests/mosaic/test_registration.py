@@ -77,7 +77,7 @@ def test_similarity_chosen_when_inliers_cover_a_third_of_the_frame():
     models, err_auto, err_h = [], [], []
     for _ in range(8):
         cur, prev, H_true = _similarity_pair(rng, 180, 220)
-        reg = estimate_motion(cur, prev, RegistrationConfig(), (350, 660))
+        reg = estimate_motion(cur, prev, RegistrationConfig(model="auto"), (350, 660))
         assert reg.ok
         models.append(reg.model)
         assert 0.25 < reg.coverage < 0.36
@@ -93,7 +93,7 @@ def test_homography_chosen_for_a_strong_perspective_seen_across_the_frame():
     rng = np.random.default_rng(5)
     for _ in range(4):
         cur, prev, H_true = _similarity_pair(rng, 300, 660, perspective=(2e-4, -1.5e-4))
-        reg = estimate_motion(cur, prev, RegistrationConfig(), (350, 660))
+        reg = estimate_motion(cur, prev, RegistrationConfig(model="auto"), (350, 660))
         assert reg.ok and reg.model == "homography"
         assert reg.coverage > 0.85
         assert corner_error(reg.H_cur_to_prev, H_true, (660, 350)) < 1.0
@@ -121,6 +121,6 @@ def test_refined_model_keeps_the_true_inliers_and_rejects_the_outliers():
     rng = np.random.default_rng(7)
     cur, prev, _ = _similarity_pair(rng, 240, 660)
     true_inliers = np.arange(240) >= 40
-    reg = estimate_motion(cur, prev, RegistrationConfig(), (350, 660))
+    reg = estimate_motion(cur, prev, RegistrationConfig(model="auto"), (350, 660))
     assert reg.inliers[true_inliers].mean() > 0.97
     assert reg.inliers[~true_inliers].sum() <= 2

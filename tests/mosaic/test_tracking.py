@@ -177,10 +177,9 @@ def test_keyframe_is_promoted_before_registration_fails_on_a_slow_pan(fundus):
     assert tracking["keyframes"] >= 3
     assert errors.max() < 5.0, errors
     # promotion on overlap alone: the first keyframe's inliers decay to ~20 before a frame
-    # fails against it and is placed by its predecessor; measured 25 px off at worst
-    late, late_errors = run(
+    # fails against it and only its predecessor places it (with homographies, 25 px off)
+    late, _ = run(
         promote_min_inliers=0, promote_inlier_ratio=0.0, promote_coverage_ratio=0.0
     )
     assert late["summary"]["tracking"]["placed_by_previous"] >= 1
     assert min(e["n_inliers"] for e in late["frames"][1:]) < 30
-    assert late_errors.max() > 2 * errors.max()
