@@ -102,6 +102,39 @@ def estimate_homography(
     return Registration(H, n, n_inliers, inliers, float(err.mean()), None)
 
 
+def _linear_consensus(
+    xy_cur: np.ndarray, xy_prev: np.ndarray, config: RegistrationConfig, model: str
+) -> Registration:
+    """RANSAC consensus of a similarity (translation, similarity) or an affine model: fewer
+    points per sample than a homography, so far fewer iterations for the same confidence."""
+    n = len(xy_cur)
+    no_inliers = np.zeros(n, bool)
+    reason = failure_reason(None, n) if n < 4 else None
+    if reason is not None:
+        return _failed(n, no_inliers, reason, model)
+    estimate = cv2.estimateAffine2D if model == "affine" else cv2.estimateAffinePartial2D
+    A, mask = estimate(
+        xy_cur.astype(np.float32),
+        xy_prev.astype(np.float32),
+        method=cv2.RANSAC,
+        ransacReprojThreshold=config.reproj_threshold_px,
+        maxIters=config.max_iters,
+        confidence=config.confidence,
+        refineIters=0,
+    )
+    inliers = mask.ravel().astype(bool) if mask is not None else no_inliers
+    H = None if A is None else np.vstack([A, [0.0, 0.0, 1.0]])
+    n_inliers = int(inliers.sum())
+    reason = failure_reason(H, n)
+    if reason is None and n_inliers < config.min_inliers:
+        reason = f"too few inliers ({n_inliers} < {config.min_inliers})"
+    if reason is not None:
+        return _failed(n, inliers, reason, model)
+    assert H is not None
+    err = transfer_errors(H, xy_cur[inliers], xy_prev[inliers])
+    return Registration(H, n, n_inliers, inliers, float(err.mean()), None, model)
+
+
 # -- the model hierarchy ---------------------------------------------------------------------
 
 
@@ -281,10 +314,13 @@ def estimate_motion(
     selects), refined on all matches within the threshold; the paper's failure rules."""
     model = model or config.model
     n = len(xy_cur)
-    consensus = estimate_homography(xy_cur, xy_prev, config)
+    if model in ("translation", "similarity", "affine"):
+        consensus = _linear_consensus(xy_cur, xy_prev, config, model)
+    else:
+        consensus = estimate_homography(xy_cur, xy_prev, config)
     if consensus.H_cur_to_prev is None:
         return consensus
-    if model == "homography" and not config.refine:
+    if not config.refine:
         return consensus
     T = _normaliser(shape)
     a_all, b_all = _to_norm(T, xy_cur), _to_norm(T, xy_prev)
