@@ -47,14 +47,28 @@ def distance_matrix(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
     return d if desc_a.dtype == np.uint8 else np.sqrt(np.maximum(d, 0.0))
 
 
+def _unit_norm(desc: np.ndarray) -> bool:
+    """All rows of unit L2 norm (to float32 precision)."""
+    norms = np.einsum("ij,ij->i", desc, desc, dtype=np.float32)
+    return bool(np.all(np.abs(norms - 1.0) < 1e-3))
+
+
 def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, config: MatchingConfig) -> Matches:
     """Nearest neighbour of each row of `desc_a` in `desc_b`, filtered as configured."""
     if len(desc_a) == 0 or len(desc_b) == 0:
         empty = np.zeros(0, np.intp)
         return Matches(empty, empty, np.zeros(0, np.float32))
     binary = desc_a.dtype == np.uint8
-    d = squared_distance_matrix(desc_a, desc_b)  # sqrt only for the kept matches
     idx_a = np.arange(len(desc_a))
+    if not binary and config.ratio >= 1.0 and _unit_norm(desc_a) and _unit_norm(desc_b):
+        # unit vectors (root-SIFT): nearest = largest dot product, |a - b|^2 = 2 - 2 a.b; one
+        # matrix product and no pass to add the norms
+        s = desc_a.astype(np.float32, copy=False) @ desc_b.astype(np.float32, copy=False).T
+        idx_b = s.argmax(axis=1)
+        keep = s.argmax(axis=0)[idx_b] == idx_a if config.cross_check else np.ones(len(s), bool)
+        best = np.sqrt(np.maximum(2.0 - 2.0 * s[idx_a, idx_b][keep], 0.0))
+        return Matches(idx_a[keep], idx_b[keep], best.astype(np.float32))
+    d = squared_distance_matrix(desc_a, desc_b)  # sqrt only for the kept matches
     idx_b = d.argmin(axis=1)
     best = d[idx_a, idx_b]
     keep = np.ones(len(idx_a), bool)
