@@ -162,6 +162,12 @@ class MosaicBuilder:
         self._overlay = OverlayMask(config.preprocess)
         self._max_side = config.preprocess.max_side_px
         self._S: np.ndarray | None = None  # H_frame_to_work of the video's frames (one size)
+        # The quality score is computed where it is used: live when the viewer shows it or no
+        # re-render will replace the live poses; else once, in the re-render pass, at the poses
+        # the report gives (the live score would be overwritten there).
+        k = config.keyframes
+        rerenders = config.pipeline.strategy == "keyframes" and k.refine and k.rerender
+        self._live_quality = not isinstance(self.viewer, NullViewer) or not rerenders
         self._started = time.perf_counter()
 
     @property
@@ -303,7 +309,7 @@ class MosaicBuilder:
         H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
         mask = self._frame_mask(prepared, image)
         quality = float("nan")
-        if segment.canvas.n_frames:  # agreement with the frames already on the canvas
+        if self._live_quality and segment.canvas.n_frames:  # against the frames already there
             canvas = segment.canvas
             quality = timer.run("compose", frame_vs_canvas, canvas, image, H_frame_to_ref, mask)
         try:
