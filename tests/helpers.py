@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from mosaic.synth import corner_error  # noqa: F401 (re-exported for the tests)
+from mosaic.synth import corner_error
 
 
 def crop_pair(
@@ -32,3 +32,40 @@ def similarity(
     H[0, 2] += tx
     H[1, 2] += ty
     return H
+
+
+def errors_to_first(
+    frames: list[dict], truth: list[np.ndarray], size: tuple[int, int]
+) -> np.ndarray:
+    """Corner error (px) of each reported frame's pose relative to the report's first frame,
+    against the truth (`H_frame_to_source` per input index); inf where a frame is not placed."""
+    H0 = np.array(frames[0]["H_to_canvas"])
+    G0_inv = np.linalg.inv(truth[frames[0]["index"]])
+    return np.array(
+        [
+            np.inf
+            if e["H_to_canvas"] is None
+            else corner_error(
+                np.linalg.inv(H0) @ np.array(e["H_to_canvas"]), G0_inv @ truth[e["index"]], size
+            )
+            for e in frames
+        ]
+    )
+
+
+def build_from_folder(folder, config):
+    """`mosaic build` of a folder of frames, streamed, re-read for the re-render."""
+    from mosaic.io import open_frames
+    from mosaic.pipeline import MosaicBuilder
+
+    builder = MosaicBuilder(config)
+    with open_frames(folder) as frames:
+        for _ in builder.stream(frames):
+            pass
+
+    def reread():
+        with open_frames(folder) as again:
+            for frame in again:
+                yield frame.index, frame.image
+
+    return builder.finish(reread=reread)

@@ -13,7 +13,7 @@ from mosaic.io import Frame, open_frames
 from mosaic.pipeline import MosaicBuilder
 from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
-from tests.helpers import corner_error
+from tests.helpers import build_from_folder, corner_error, errors_to_first
 
 SIZE = (400, 300)
 
@@ -50,13 +50,7 @@ def _run(
 
 def _errors_to_first(frames: list[dict], gt: list[np.ndarray], size: tuple[int, int]) -> list:
     """Corner error of each reported frame->first-frame homography against the truth."""
-    H0 = np.array(frames[0]["H_to_canvas"])
-    errors = []
-    for entry in frames[1:]:
-        H_i_to_0 = np.linalg.inv(H0) @ np.array(entry["H_to_canvas"])
-        H_true = np.linalg.inv(gt[0]) @ gt[entry["index"]]
-        errors.append(corner_error(H_i_to_0, H_true, size))
-    return errors
+    return list(errors_to_first(frames, gt, size)[1:])
 
 
 @pytest.fixture(scope="module")
@@ -180,15 +174,7 @@ def test_detecting_at_half_scale_still_follows_the_ground_truth(video):
     result = _run(folder, with_overrides(_config(), features={"detect_scale": 0.5}))
     frames = result.report["frames"]
     assert result.report["summary"]["registered"] == 24
-    H0 = np.array(frames[0]["H_to_canvas"])
-    errors = [
-        corner_error(
-            np.linalg.inv(H0) @ np.array(e["H_to_canvas"]),
-            np.linalg.inv(gt[0]) @ gt[e["index"]],
-            SIZE,
-        )
-        for e in frames[1:]
-    ]
+    errors = _errors_to_first(frames, gt, SIZE)
     assert np.mean(errors) < 4.0, errors
 
 
@@ -248,17 +234,7 @@ def test_burned_in_overlay_is_left_out_of_the_rendered_mosaic(tmp_path):
         config = with_overrides(
             Config(), features={"detector": "sift"}, preprocess={"overlay_mask": overlay_mask}
         )
-        builder = MosaicBuilder(config)
-        with open_frames(folder) as frames:
-            for _ in builder.stream(frames):
-                pass
-
-        def reread():
-            with open_frames(folder) as again:
-                for frame in again:
-                    yield frame.index, frame.image
-
-        result = builder.finish(reread=reread)
+        result = build_from_folder(folder, config)
         assert result.report["summary"]["tracking"]["rerendered"]
         H_0_to_mosaic = np.array(result.report["frames"][0]["H_to_canvas"])
         # in frame 0's pixels, so that mosaics with different bounding boxes compare

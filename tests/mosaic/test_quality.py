@@ -13,11 +13,11 @@ import pytest
 from mosaic.compose import Canvas
 from mosaic.config import ComposeConfig, Config, PreprocessConfig, with_overrides
 from mosaic.io import open_frames
-from mosaic.pipeline import MosaicBuilder
 from mosaic.preprocess import prepare
 from mosaic.quality import agreement, frame_vs_canvas, score_vs_error, shift_response
 from mosaic.synth import SynthParams, load_ground_truth, render_frames, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
+from tests.helpers import build_from_folder
 
 THRESHOLD = ComposeConfig().quality_threshold
 N_PLACED = 4  # frames on the canvas before the scored one
@@ -124,17 +124,7 @@ def built(tmp_path_factory):
 
 
 def _build(folder: Path, config: Config):
-    builder = MosaicBuilder(config)
-    with open_frames(folder) as frames:
-        for _ in builder.stream(frames):
-            pass
-
-    def reread():
-        with open_frames(folder) as again:
-            for frame in again:
-                yield frame.index, frame.image
-
-    return builder.finish(reread=reread)
+    return build_from_folder(folder, config)
 
 
 def test_report_scores_every_registered_frame_but_the_first(built):

@@ -9,7 +9,7 @@ import pytest
 from mosaic.config import Config, with_overrides
 from mosaic.pipeline import MosaicBuilder
 from mosaic.synth import SynthParams, render_frames
-from tests.helpers import corner_error
+from tests.helpers import errors_to_first
 
 SIZE = (400, 300)
 
@@ -41,16 +41,7 @@ def _run(config: Config, frames: list[np.ndarray]):
 
 def _errors_to_first(result, truth: list[np.ndarray]) -> np.ndarray:
     """Corner error (px) of each frame's pose relative to frame 0; inf when not placed."""
-    frames = result.report["frames"]
-    H0 = np.array(frames[0]["H_to_canvas"])
-    out = []
-    for entry, H_true_to_src in zip(frames, truth, strict=True):
-        if entry["H_to_canvas"] is None:
-            out.append(np.inf)
-            continue
-        H_est = np.linalg.inv(H0) @ np.array(entry["H_to_canvas"])
-        out.append(corner_error(H_est, np.linalg.inv(truth[0]) @ H_true_to_src, SIZE))
-    return np.array(out)
+    return errors_to_first(result.report["frames"], truth, SIZE)
 
 
 def _noise(seed: int) -> np.ndarray:
@@ -156,17 +147,7 @@ def test_keyframe_is_promoted_before_registration_fails_on_a_slow_pan(fundus):
 
     def run(**keyframes):
         result = _run(_config("keyframes", **keyframes), frames)
-        entries = result.report["frames"]
-        H0 = np.array(entries[0]["H_to_canvas"])
-        errors = [
-            corner_error(
-                np.linalg.inv(H0) @ np.array(e["H_to_canvas"]),
-                np.linalg.inv(truth[0]) @ truth[e["index"]],
-                size,
-            )
-            for e in entries
-        ]
-        return result.report, np.array(errors)
+        return result.report, errors_to_first(result.report["frames"], truth, size)
 
     report, errors = run()
     tracking = report["summary"]["tracking"]
@@ -178,8 +159,6 @@ def test_keyframe_is_promoted_before_registration_fails_on_a_slow_pan(fundus):
     assert errors.max() < 5.0, errors
     # promotion on overlap alone: the first keyframe's inliers decay to ~20 before a frame
     # fails against it and only its predecessor places it (with homographies, 25 px off)
-    late, _ = run(
-        promote_min_inliers=0, promote_inlier_ratio=0.0, promote_coverage_ratio=0.0
-    )
+    late, _ = run(promote_min_inliers=0, promote_inlier_ratio=0.0, promote_coverage_ratio=0.0)
     assert late["summary"]["tracking"]["placed_by_previous"] >= 1
     assert min(e["n_inliers"] for e in late["frames"][1:]) < 30
