@@ -333,7 +333,7 @@ def estimate_motion(
     fit: _Fit | None = None
     corner_sd = float("nan")
     try:
-        for round_ in range(REFINE_ROUNDS if model == "auto" else REFINE_ROUNDS - 1):
+        for round_ in range(REFINE_ROUNDS):
             a, b, w = a_all[inliers], b_all[inliers], w_all[inliers]
             if len(a) < 4:
                 break
