@@ -8,6 +8,7 @@ naming the offending key, so a typo never silently falls back to a default.
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -158,6 +159,11 @@ CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
     ("pipeline", "strategy"): ("keyframes", "chain"),
 }
 POSITIVE = {
+    ("preprocess", "clahe_clip_limit"),
+    ("preprocess", "bilateral_sigma_color"),
+    ("preprocess", "bilateral_sigma_space"),
+    ("matching", "ratio"),
+    ("registration", "confidence"),
     ("preprocess", "clahe_tile_grid"),
     ("preprocess", "bilateral_diameter_px"),
     ("features", "max_keypoints"),
@@ -175,7 +181,15 @@ AT_MOST_ONE = {
     ("features", "detect_scale"),
     ("features", "extra_scale"),
     ("compose", "quality_threshold"),
+    ("matching", "ratio"),
+    ("keyframes", "min_overlap"),
+    ("keyframes", "promote_inlier_ratio"),
+    ("keyframes", "promote_coverage_ratio"),
+    ("keyframes", "loop_min_overlap"),
+    ("gating", "min_sharpness_ratio"),
+    ("gating", "min_fov_fraction"),
 }
+BELOW_ONE = {("registration", "confidence")}  # a probability: 1 would ask RANSAC for certainty
 AT_LEAST_IF_SET = {("preprocess", "max_side_px"): 64}  # 0 turns it off
 
 
@@ -187,6 +201,8 @@ def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
         raise ConfigError(
             f"config {where} must be {expected.__name__}, got {type(value).__name__} {value!r}"
         )
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"config {where} must be a finite number, got {value!r}")
     choices = CHOICES.get((table, key))
     if choices is not None and value not in choices:
         raise ConfigError(f"config {where} must be one of {', '.join(choices)}, got {value!r}")
@@ -194,6 +210,8 @@ def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
         raise ConfigError(f"config {where} must be > 0, got {value!r}")
     if (table, key) in AT_MOST_ONE and value > 1:
         raise ConfigError(f"config {where} must be <= 1, got {value!r}")
+    if (table, key) in BELOW_ONE and value >= 1:
+        raise ConfigError(f"config {where} must be < 1, got {value!r}")
     least = AT_LEAST_IF_SET.get((table, key))
     if least is not None and 0 < value < least:
         raise ConfigError(f"config {where} must be 0 (off) or >= {least}, got {value!r}")

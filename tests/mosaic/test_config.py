@@ -1,8 +1,11 @@
+import dataclasses
+import math
+import typing
 from pathlib import Path
 
 import pytest
 
-from mosaic.config import Config, load_config, with_overrides
+from mosaic.config import POSITIVE, Config, config_from_dict, load_config, with_overrides
 from mosaic.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -56,3 +59,34 @@ def test_overrides_are_validated():
     assert config.pipeline.on_failure == "stop"
     with pytest.raises(ConfigError, match="on_failure"):
         with_overrides(Config(), pipeline={"on_failure": "ignore"})
+
+
+def _numeric_keys():
+    for table, cls in typing.get_type_hints(Config).items():
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if hints[f.name] in (int, float):
+                yield table, f.name, hints[f.name]
+
+
+@pytest.mark.parametrize(("table", "key", "kind"), list(_numeric_keys()))
+def test_every_numeric_key_rejects_non_finite_and_negative_values(table, key, kind):
+    """NaN, inf and negative values are errors that name the key; 0 only where it means
+    something (off, none)."""
+    bad = [-1] + ([math.nan, math.inf, -math.inf] if kind is float else [])
+    for value in bad:
+        with pytest.raises(ConfigError, match=rf"\[{table}\] {key}"):
+            config_from_dict({table: {key: value}})
+    zero_is_bad = (table, key) in POSITIVE
+    if zero_is_bad:
+        with pytest.raises(ConfigError, match=rf"\[{table}\] {key}"):
+            config_from_dict({table: {key: 0}})
+    else:
+        assert getattr(getattr(config_from_dict({table: {key: 0}}), table), key) == 0
+
+
+@pytest.mark.parametrize("value", [1.0, 1.5, 0.0])
+def test_ransac_confidence_is_a_probability_below_one(value):
+    with pytest.raises(ConfigError, match=r"\[registration\] confidence"):
+        config_from_dict({"registration": {"confidence": value}})
+    assert config_from_dict({"registration": {"confidence": 0.99}}).registration.confidence == 0.99
