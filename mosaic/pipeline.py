@@ -1,6 +1,7 @@
 """The mosaicking pipeline: each frame goes read → preprocess → gate → detect → describe →
-track (match → estimate → check, against the previous frame or the keyframes) → compose, and is
-accounted for in the report; at the end the keyframe poses are refined and the mosaic rendered.
+track (match → estimate → check, against the previous frame and/or the keyframes) → compose, and
+is accounted for in the report; at the end the poses are refined and the mosaic rendered (with
+each frame's quality score against it).
 
 `MosaicBuilder.process` takes one decoded frame at a time (frames are streamed, never stored);
 it is `extract` (preprocess → describe: needs no other frame) then `register` (track → compose,

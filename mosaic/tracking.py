@@ -2,11 +2,13 @@
 
 - `ChainTracker`: the paper's frame-to-frame chaining, `H_frame_to_ref = H_prev_to_ref @
   H_cur_to_prev`; errors accumulate with every step.
-- `KeyframeTracker`: each frame registers to the active keyframe; a frame whose overlap with it
-  drops below a threshold becomes the next keyframe. A frame that fails is relocalised against
-  recent and nearby keyframes; new keyframes are matched against older overlapping ones (loop
-  closure); at the end a pose graph over keyframes is refined. Keyframes keep their features
-  (bounded count), never their pixels.
+- `KeyframeTracker`: each frame registers to the keyframe it overlaps most and to its
+  predecessor; a frame becomes a keyframe when its registration to the current one decays
+  (inliers, coverage) or their overlap drops, before registration fails. A frame that fails
+  every keyframe but matches its predecessor keeps its place; one that fails both is
+  relocalised against nearby and, while lost, all keyframes; new keyframes are matched against
+  older overlapping ones (loop closure); at the end a pose graph over every placed frame is
+  refined. Keyframes keep their features (bounded count), never their pixels.
 
 A tracker proposes a placement (`track`); the pipeline `commit`s it once the frame is on the
 canvas, so a frame the canvas refuses leaves the tracker unchanged.
