@@ -319,8 +319,7 @@ def _pair_result(
     registration = register_pair(read_image(fixed), read_image(moving), config, extractor, model)
     H = registration.H_cur_to_prev
     return {
-        "fixed": str(fixed),
-        "moving": str(moving),
+        **_pair_names(fixed, moving),
         "status": "registered" if registration.ok else "failed",
         "reason": registration.reason,
         "H_moving_to_fixed": None if H is None else np.asarray(H).tolist(),
@@ -330,15 +329,28 @@ def _pair_result(
     }
 
 
-def _read_pairs(path: Path) -> list[tuple[Path, Path]]:
+def _pair_names(fixed: Path, moving: Path) -> dict[str, str]:
+    return {"fixed": str(fixed), "moving": str(moving)}
+
+
+def _read_pairs(path: Path) -> list[tuple[Path, Path] | str]:
+    """The pairs of a CSV (paths relative to it); a row without both paths is its error."""
     if not path.is_file():
         raise InputError(f"pairs file not found: {path}")
-    with path.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"cannot read pairs file {path}: {exc}") from exc
     if not rows or not {"fixed", "moving"} <= set(rows[0]):
         raise InputError(f"{path} must be a CSV with columns fixed,moving and at least one row")
     base = path.parent
-    return [(base / r["fixed"], base / r["moving"]) for r in rows]
+    return [
+        (base / r["fixed"].strip(), base / r["moving"].strip())
+        if (r.get("fixed") or "").strip() and (r.get("moving") or "").strip()
+        else f"row {i + 2}: fixed and moving must both be given"
+        for i, r in enumerate(rows)
+    ]
 
 
 @app.command()
@@ -368,9 +380,19 @@ def register(
         config = _config(config_path, detector)
         extractor = FeatureExtractor(config.features)
         if pairs is not None:
-            for fixed_path, moving_path in _read_pairs(pairs):
-                result = _pair_result(fixed_path, moving_path, config, extractor, model)
+            failed = 0
+            for pair in _read_pairs(pairs):
+                if isinstance(pair, str):  # a malformed row: one failed line, go on
+                    result = {"status": "failed", "reason": pair}
+                else:
+                    try:
+                        result = _pair_result(*pair, config, extractor, model)
+                    except InputError as exc:  # a missing or unreadable image
+                        result = {**_pair_names(*pair), "status": "failed", "reason": str(exc)}
+                failed += result["status"] != "registered"
                 typer.echo(json.dumps(result))
+            if failed:
+                raise typer.Exit(1)
             return
         if fixed is None or moving is None:
             raise InputError("give FIXED and MOVING images, or --pairs PAIRS.csv")

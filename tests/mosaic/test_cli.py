@@ -178,3 +178,14 @@ def test_register_prints_the_homography(fundus, tmp_path):
         corner_error(np.array(lines[1]["H_moving_to_fixed"]), np.linalg.inv(H_b_to_a), (480, 320))
         < 2.0
     )
+    # a missing image and a row without its moving image: one failed line each, the batch goes
+    # on, exit 1
+    (tmp_path / "pairs.csv").write_text("fixed,moving\na.png,missing.png\nb.png\na.png,b.png\n")
+    result = runner.invoke(
+        app, ["register", "--pairs", str(tmp_path / "pairs.csv"), "--detector", "sift"]
+    )
+    assert result.exit_code == 1 and "Traceback" not in result.output
+    lines = [json.loads(line) for line in result.stdout.splitlines()]
+    assert [line["status"] for line in lines] == ["failed", "failed", "registered"]
+    assert "missing.png" in lines[0]["reason"] and "row 3" in lines[1]["reason"]
+    assert corner_error(np.array(lines[2]["H_moving_to_fixed"]), H_b_to_a, (480, 320)) < 2.0
