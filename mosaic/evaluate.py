@@ -47,6 +47,7 @@ from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicBuilder
 from mosaic.preprocess import prepare, scale_matrix
 from mosaic.quality import spearman
+from mosaic.registration import MODELS as MOTION_MODELS
 from mosaic.registration import estimate_homography
 from mosaic.synth import corner_error, gt_path_for, load_ground_truth, relative_homographies
 
@@ -55,7 +56,6 @@ log = logging.getLogger(__name__)
 EPS_PX = 3.0  # correctness radius of a keypoint / match (paper: 3 px)
 FIRE_SCALE = 0.15  # the paper's FIRE protocol: 2912 px images downscaled to 15 % for detection
 ACCURATE_CORNER_ERROR_PX = 10.0  # a video frame further than this from the truth is a failure
-MOTION_MODELS = ("translation", "similarity", "affine", "homography")  # the report's "model"
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv")
 CLASSES = ("failed", "inaccurate", "acceptable")
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -456,6 +457,12 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict
     return entry
 
 
+def _model_counts(records: list[FrameRecord]) -> dict[str, int]:
+    """Registered frames per motion model (a segment's first frame has none), in MODELS order."""
+    counts = Counter(r.model for r in records if r.status == REGISTERED and r.reference is not None)
+    return {m: counts[m] for m in MODELS if counts[m]}
+
+
 def _tracking_summary(builder: MosaicBuilder) -> dict[str, Any]:
     """Keyframes, relocalisations, loop closures and refinement residuals over all segments."""
     per_segment = [s.tracker.stats() for s in builder._segments]
@@ -508,16 +515,7 @@ def build_report(
         "detector": builder.extractor.detector.name,
         "working_scale": 1.0 if builder._S is None else round(float(builder._S[0, 0]), 4),
         "strategy": builder.config.pipeline.strategy,
-        "models": {
-            m: n
-            for m in MODELS
-            if (
-                n := sum(
-                    r.model == m and r.reference is not None and r.status == REGISTERED
-                    for r in records
-                )
-            )
-        },
+        "models": _model_counts(records),
         "tracking": _tracking_summary(builder),
         "on_failure": builder.config.pipeline.on_failure,
         "stopped_at_failure": builder.stopped,

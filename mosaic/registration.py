@@ -72,6 +72,28 @@ def transfer_errors(H: np.ndarray, xy_cur: np.ndarray, xy_prev: np.ndarray) -> n
     return np.where(np.isfinite(err), err, np.inf)
 
 
+def _checked(
+    H: np.ndarray | None,
+    inliers: np.ndarray,
+    xy_cur: np.ndarray,
+    xy_prev: np.ndarray,
+    config: RegistrationConfig,
+    model: str = "homography",
+    **extra: float,
+) -> Registration:
+    """The paper's failure rules and `min_inliers` on an estimate; its mean inlier error."""
+    n, n_inliers = len(xy_cur), int(inliers.sum())
+    reason = failure_reason(H, n)
+    if reason is None and n_inliers < config.min_inliers:
+        reason = f"too few inliers ({n_inliers} < {config.min_inliers})"
+    if reason is not None:
+        return _failed(n, inliers, reason, model)
+    assert H is not None
+    H = H / H[2, 2]
+    err = transfer_errors(H, xy_cur[inliers], xy_prev[inliers])
+    return Registration(H, n, n_inliers, inliers, float(err.mean()), None, model, **extra)
+
+
 def estimate_homography(
     xy_cur: np.ndarray, xy_prev: np.ndarray, config: RegistrationConfig
 ) -> Registration:
@@ -91,15 +113,7 @@ def estimate_homography(
         confidence=config.confidence,
     )
     inliers = mask.ravel().astype(bool) if mask is not None else no_inliers
-    n_inliers = int(inliers.sum())
-    reason = failure_reason(H, n)
-    if reason is None and n_inliers < config.min_inliers:
-        reason = f"too few inliers ({n_inliers} < {config.min_inliers})"
-    if reason is not None:
-        return _failed(n, inliers, reason)
-    H = H / H[2, 2]
-    err = transfer_errors(H, xy_cur[inliers], xy_prev[inliers])
-    return Registration(H, n, n_inliers, inliers, float(err.mean()), None)
+    return _checked(H, inliers, xy_cur, xy_prev, config)
 
 
 def _linear_consensus(
@@ -124,15 +138,7 @@ def _linear_consensus(
     )
     inliers = mask.ravel().astype(bool) if mask is not None else no_inliers
     H = None if A is None else np.vstack([A, [0.0, 0.0, 1.0]])
-    n_inliers = int(inliers.sum())
-    reason = failure_reason(H, n)
-    if reason is None and n_inliers < config.min_inliers:
-        reason = f"too few inliers ({n_inliers} < {config.min_inliers})"
-    if reason is not None:
-        return _failed(n, inliers, reason, model)
-    assert H is not None
-    err = transfer_errors(H, xy_cur[inliers], xy_prev[inliers])
-    return Registration(H, n, n_inliers, inliers, float(err.mean()), None, model)
+    return _checked(H, inliers, xy_cur, xy_prev, config, model)
 
 
 # -- the model hierarchy ---------------------------------------------------------------------
@@ -318,9 +324,7 @@ def estimate_motion(
         consensus = _linear_consensus(xy_cur, xy_prev, config, model)
     else:
         consensus = estimate_homography(xy_cur, xy_prev, config)
-    if consensus.H_cur_to_prev is None:
-        return consensus
-    if not config.refine:
+    if consensus.H_cur_to_prev is None or not config.refine:
         return consensus
     T = _normaliser(shape)
     a_all, b_all = _to_norm(T, xy_cur), _to_norm(T, xy_prev)
@@ -353,25 +357,15 @@ def estimate_motion(
         return consensus
     if model != "auto":
         corner_sd = float("nan")
-    H = np.linalg.inv(T) @ fit.M @ T
-    H = H / H[2, 2]
-    n_inliers = int(inliers.sum())
-    reason = failure_reason(H, n)
-    if reason is None and n_inliers < config.min_inliers:
-        reason = f"too few inliers ({n_inliers} < {config.min_inliers})"
-    if reason is not None:
-        return _failed(n, inliers, reason, fit.model)
-    err = transfer_errors(H, xy_cur[inliers], xy_prev[inliers])
-    return Registration(
-        H,
-        n,
-        n_inliers,
+    return _checked(
+        np.linalg.inv(T) @ fit.M @ T,
         inliers,
-        float(err.mean()),
-        None,
+        xy_cur,
+        xy_prev,
+        config,
         fit.model,
-        inlier_coverage(xy_cur[inliers], shape),
-        corner_sd / T[0, 0] if np.isfinite(corner_sd) else float("nan"),
+        coverage=inlier_coverage(xy_cur[inliers], shape),
+        corner_sd_px=corner_sd / T[0, 0] if np.isfinite(corner_sd) else float("nan"),
     )
 
 

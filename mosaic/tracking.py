@@ -180,6 +180,9 @@ class Keyframe:
     peak_inliers: int = 0  # most inliers a frame registered to it has had
     peak_coverage: float = 0.0  # largest inlier coverage a frame registered to it has had
 
+    def footprint(self) -> np.ndarray:
+        return project(self.H_to_ref, corners(self.shape))
+
 
 @dataclass
 class _Counters:
@@ -220,7 +223,7 @@ class KeyframeTracker:
         """Fraction of the frame (placed by `H_frame_to_ref`) inside each live keyframe."""
         footprint = project(H_frame_to_ref, corners(shape))
         return {
-            kf.id: overlap_fraction(footprint, project(kf.H_to_ref, corners(kf.shape)))
+            kf.id: overlap_fraction(footprint, kf.footprint())
             for kf in self._keyframes.values()
             if kf.features is not None
         }
@@ -392,9 +395,9 @@ class KeyframeTracker:
     def _close_loops(self, new: Keyframe, registered_to: int, shape: tuple[int, int]) -> None:
         """Match a new keyframe against older keyframes its footprint overlaps."""
         recent = set(list(self._keyframes)[-(self.RECENT_KEYFRAMES + 1) :]) | {registered_to}
-        footprint = project(new.H_to_ref, corners(new.shape))
+        footprint = new.footprint()
         scored = [
-            (overlap_fraction(footprint, project(kf.H_to_ref, corners(kf.shape))), kf)
+            (overlap_fraction(footprint, kf.footprint()), kf)
             for kf in self._keyframes.values()
             if kf.id not in recent and kf.features is not None
         ]
