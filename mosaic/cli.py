@@ -437,6 +437,14 @@ def evaluate(
         str,
         typer.Option(help="Comma-separated strategies: keyframes, chain (the paper's)."),
     ] = "keyframes,chain",
+    fidelity: Annotated[
+        bool,
+        typer.Option(
+            "--fidelity/--no-fidelity",
+            help="Score each mosaic against the source photograph named in VIDEO.gt.json "
+            "(fidelity, good area) next to the oracle (frames placed by the truth).",
+        ),
+    ] = True,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Compare detectors and strategies on videos: frames until failure, accuracy vs
@@ -458,6 +466,7 @@ def evaluate(
             explicit=detector is not None,
             progress=True,
             strategies=strategies,
+            fidelity=fidelity,
         )
         typer.echo(format_video_tables(results, summary))
         typer.echo(f"tables and plots: {out}")

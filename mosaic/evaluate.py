@@ -14,7 +14,9 @@ checked against the synthetic ground truth (`*.gt.json`) when there is one: each
 against the first frame (corner error, drift) and against the frame it was registered to (step
 error); the report's motion models are counted per video, and its per-frame quality score is
 compared with the corner error (rank correlation, bad frames flagged, good frames flagged). Each
-run's full report is kept under `reports/`.
+run's full report is kept under `reports/`. With a readable source photograph, the mosaic itself
+is scored against it (`mosaic.fidelity`, issue 16: fidelity and good area), next to the oracle
+(the plain mean of the frames placed by the true transforms, computed once per video).
 
 Outputs (`write_pair_outputs`, `write_video_outputs`): CSV and JSON tables, per-pair/per-video
 rows and PNG plots. Pure metric definitions live in `glampoints.metrics`, not here.
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import logging
 import math
 import time
@@ -42,10 +45,17 @@ from mosaic.config import Config, with_overrides
 from mosaic.datasets import FIRE_CATEGORIES, Pair, PairDataset
 from mosaic.errors import ConfigError, InputError, OutputError
 from mosaic.features import DETECTORS, FeatureExtractor
-from mosaic.io import IMAGE_READ_SUFFIXES, open_frames, write_json
+from mosaic.fidelity import (
+    FidelityScores,
+    SourceTruth,
+    mosaic_fidelity,
+    oracle_fidelity,
+    prepare_source,
+)
+from mosaic.io import IMAGE_READ_SUFFIXES, open_frames, read_image, write_json
 from mosaic.matching import distance_matrix, match_descriptors
-from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicBuilder
-from mosaic.preprocess import prepare, scale_matrix
+from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicBuilder, MosaicResult
+from mosaic.preprocess import field_of_view_mask, prepare, scale_matrix, to_gray
 from mosaic.quality import spearman
 from mosaic.registration import MODELS as MOTION_MODELS
 from mosaic.registration import estimate_homography
@@ -592,6 +602,10 @@ class VideoResult:
     bad_frames: float = math.nan  # frames more than 10 px off the truth (nan: no truth)
     bad_caught: float = math.nan  # fraction of them flagged by the quality score
     good_flagged: float = math.nan  # fraction of the frames within 10 px flagged
+    fidelity: float = math.nan  # mean local NCC of the main mosaic and the source (issue 16)
+    good_area: float = math.nan  # share of the scanned retina with local NCC > 0.5
+    oracle_fidelity: float = math.nan  # the same for the mean of frames placed by the truth
+    oracle_good_area: float = math.nan
     model_counts: dict[str, int] = field(default_factory=dict)  # registered frames per model
     errors: list[tuple[int, float]] = field(default_factory=list, repr=False)  # (index, px)
     step_errors: list[tuple[int, float]] = field(default_factory=list, repr=False)
@@ -786,18 +800,138 @@ def _reread(path: Path, step: int, max_frames: int) -> Callable[[], Iterator[tup
     return frames
 
 
+@dataclass(frozen=True)
+class FidelityReference:
+    """A video's truth for the mosaic-fidelity scores, shared by all its runs."""
+
+    truth: list[np.ndarray]  # H_frame_to_source per frame index
+    source: SourceTruth
+    oracle: FidelityScores  # the mean of the frames placed by the truth
+
+
+def source_path(gt_file: Path) -> Path | None:
+    """The source photograph a ground-truth file names (None if it names none).
+
+    `~` is expanded; a relative path is looked up beside the ground truth (where its video
+    is), then from the current folder (where `mosaic synth` was run); the first that exists,
+    else the former.
+    """
+    try:
+        source = json.loads(gt_file.read_text(encoding="utf-8")).get("source")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise InputError(f"malformed ground truth {gt_file}: {exc}") from exc
+    if not isinstance(source, str) or not source:
+        return None
+    p = Path(source).expanduser()
+    if p.is_absolute():
+        return p
+    beside = gt_file.parent / p
+    return beside if beside.is_file() or not p.is_file() else p
+
+
+def _fov_masker(config: Config) -> Callable[[np.ndarray], np.ndarray | None]:
+    """The frames' field-of-view mask as the pipeline composes them (None: no mask)."""
+    pre = config.preprocess
+
+    def mask_of(image: np.ndarray) -> np.ndarray | None:
+        if not pre.fov_mask:
+            return None
+        return field_of_view_mask(
+            to_gray(image, pre.green_channel), pre.fov_threshold, pre.fov_erode_px
+        )
+
+    return mask_of
+
+
+def fidelity_reference(path: Path, config: Config) -> FidelityReference | None:
+    """Truth, source and oracle scores of a video, or None without ground truth or a readable
+    source photograph (then one warning). The oracle reads the video once more, frame by frame.
+    """
+    gt_file = gt_path_for(path)
+    if not gt_file.is_file():
+        return None
+    source_file = source_path(gt_file)
+    try:
+        if source_file is None:
+            raise InputError(f"{gt_file} names no source image")
+        image = read_image(source_file)
+    except InputError as exc:
+        log.warning("no fidelity scores for %s: %s", path, exc)
+        return None
+    start = time.perf_counter()
+    truth = load_ground_truth(gt_file)
+    source = prepare_source(image)
+    frames = _reread(path, config.pipeline.step, config.pipeline.max_frames)()
+    oracle = oracle_fidelity(
+        frames, truth, source, _fov_masker(config), config.compose.max_canvas_px
+    )
+    log.info(
+        "oracle of %s: fidelity %.3f, good area %.3f (%.1f s)",
+        path.name,
+        oracle.fidelity,
+        oracle.good_area,
+        time.perf_counter() - start,
+    )
+    return FidelityReference(truth, source, oracle)
+
+
+def _fidelity_scores(
+    result: MosaicResult, reference: FidelityReference, size: tuple[int, int]
+) -> dict[str, float]:
+    """The main mosaic's fidelity and good area (its frames' reported poses map into its
+    image), and the video's oracle, as VideoResult fields."""
+    start = time.perf_counter()
+    frames = result.report["frames"]
+    main = result.main
+    scores = FidelityScores()
+    if main is not None:
+        poses = {
+            f["index"]: np.asarray(f["H_to_canvas"], np.float64)
+            for f in frames
+            if f["status"] == REGISTERED
+            and f["segment"] == main.index
+            and f["H_to_canvas"] is not None
+        }
+        image = main.image
+        content = image.any(axis=2) if image.ndim == 3 else image > 0
+        scanned = [f["index"] for f in frames]
+        scores = mosaic_fidelity(
+            image, content, poses, reference.truth, reference.source, size, scanned
+        )
+    log.info(
+        "fidelity %.3f, good area %.3f (oracle %.3f, %.3f; %.1f s)",
+        scores.fidelity,
+        scores.good_area,
+        reference.oracle.fidelity,
+        reference.oracle.good_area,
+        time.perf_counter() - start,
+    )
+    return {
+        "fidelity": scores.fidelity,
+        "good_area": scores.good_area,
+        "oracle_fidelity": reference.oracle.fidelity,
+        "oracle_good_area": reference.oracle.good_area,
+    }
+
+
 def evaluate_video(
     path: Path,
     config: Config,
     extractor: FeatureExtractor,
     progress: bool = False,
     report_path: Path | None = None,
+    fidelity: bool = True,
+    reference: FidelityReference | None = None,
 ) -> VideoResult:
     """Run the pipeline over a video (failed frames skipped) and score it against its truth.
 
     The frames' poses are the ones `mosaic build` reports: after the strategy's refinement
     (keyframes: pose graph) and re-rendering, so the video is read twice. With `report_path`,
     that report (with the input, as `mosaic build` writes it) is saved there as JSON.
+
+    With `fidelity`, the main mosaic is scored against the source photograph (nan without
+    one); `reference` is the video's `fidelity_reference`, computed here when None (pass it
+    to score several runs of one video with one oracle).
     """
     config = with_overrides(config, pipeline={"on_failure": "skip"})
     builder = MosaicBuilder(config, extractor=extractor)
@@ -815,7 +949,8 @@ def evaluate_video(
         size = (source.info.width, source.info.height)
         info = source.info
     reread = _reread(path, config.pipeline.step, config.pipeline.max_frames)
-    report = builder.finish(reread=reread).report  # refined poses, as `mosaic build` reports
+    result = builder.finish(reread=reread)  # refined poses, as `mosaic build` reports
+    report = result.report
     if report_path is not None:
         write_json(report_path, {"input": dataclasses.asdict(info), **report})
     frames, summary = report["frames"], report["summary"]
@@ -834,6 +969,9 @@ def evaluate_video(
         idx = np.array(list(errors), dtype=np.float64)  # type: ignore[arg-type]
         drift = float(np.polyfit(idx, values, 1)[0])
     accurate = int((values <= ACCURATE_CORNER_ERROR_PX).sum()) if errors is not None else 0
+    if fidelity and reference is None:
+        reference = fidelity_reference(path, config)
+    scores = _fidelity_scores(result, reference, size) if fidelity and reference else {}
     return VideoResult(
         detector=f"{extractor.detector.name}/{config.pipeline.strategy}",
         video=str(path),
@@ -855,6 +993,7 @@ def evaluate_video(
         step_median_px=float(np.median(step_values)) if step_values.size else math.nan,
         step_p90_px=float(np.percentile(step_values, 90)) if step_values.size else math.nan,
         **_quality_vs_error(frames, errors),
+        **scores,
         model_counts=_model_counts(frames),
         errors=sorted(errors.items()) if errors else [],
         step_errors=sorted(steps.items()),
@@ -876,6 +1015,10 @@ VIDEO_MEAN_KEYS = (
     "bad_frames",
     "bad_caught",
     "good_flagged",
+    "fidelity",
+    "good_area",
+    "oracle_fidelity",
+    "oracle_good_area",
     "mean_inliers",
     "fps",
 )
@@ -896,6 +1039,10 @@ VIDEO_COLUMNS = (
     ("bad_frames", "bad >10px", ".1f"),
     ("bad_caught", "bad caught", ".2f"),
     ("good_flagged", "good flagged", ".2f"),
+    ("fidelity", "fidelity", ".3f"),
+    ("good_area", "good area", ".3f"),
+    ("oracle_fidelity", "oracle fid", ".3f"),
+    ("oracle_good_area", "oracle good", ".3f"),
     ("models", "models", ""),
     ("fps", "fps", ".1f"),
 )
@@ -1029,22 +1176,35 @@ def run_video_evaluation(
     explicit: bool = True,
     progress: bool = False,
     strategies: Sequence[str] = ("keyframes", "chain"),
+    fidelity: bool = True,
 ) -> tuple[list[VideoResult], list[dict[str, Any]]]:
     """Evaluate every detector with every strategy on every video; write tables and plots.
 
     Each run's report goes to `reports/<video stem>__<detector>__<strategy>.json` in `out_dir`
-    (listed in the same order as the results under the JSON's `meta.reports`).
+    (listed in the same order as the results under the JSON's `meta.reports`). With
+    `fidelity`, each video's oracle is computed once and shared by its runs.
     """
     videos = find_videos(paths)
     report_dir = _prepare_out(Path(out_dir).expanduser() / "reports")
     extractors = make_extractors(config, detectors, explicit)
     results, reports = [], []
     for video, stem in zip(videos, _unique_stems(videos), strict=True):
+        reference = fidelity_reference(video, config) if fidelity else None
         for name, (cfg, extractor) in extractors.items():
             for strategy in strategies:
                 cfg_strategy = with_overrides(cfg, pipeline={"strategy": strategy})
                 report = report_dir / f"{stem}__{name}__{strategy}.json"
-                results.append(evaluate_video(video, cfg_strategy, extractor, progress, report))
+                results.append(
+                    evaluate_video(
+                        video,
+                        cfg_strategy,
+                        extractor,
+                        progress,
+                        report,
+                        fidelity=reference is not None,
+                        reference=reference,
+                    )
+                )
                 reports.append(str(report.relative_to(report_dir.parent)))
     summary = summarize_videos(results)
     meta = {
@@ -1052,6 +1212,7 @@ def run_video_evaluation(
         "detectors": list(extractors),
         "config": dataclasses.asdict(config),
         "reports": reports,
+        "fidelity": fidelity,
     }
     write_video_outputs(results, summary, out_dir, meta)
     return results, summary
