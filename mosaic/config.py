@@ -79,6 +79,9 @@ class RegistrationConfig:
     # affine | homography. Video frames: similarity, measured best on realistic video (richer
     # models fit the matches' errors); `mosaic register` selects (auto) unless --model says
     refine: bool = True  # re-weighted least squares of the model on all matches within threshold
+    perspective_prior: float = 0.01  # with refine, relax a model below the homography into
+    # one whose departure from it has this prior sd (frame half-diagonal = 1; 0.01 is ~2 px at
+    # the corners): the matches set the perspective where they span the frame; 0 = pure model
 
 
 @dataclass(frozen=True)

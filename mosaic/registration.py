@@ -12,6 +12,13 @@ nested chi-square test) has none; otherwise the bias is how far it departs from 
 at the corners, less what the two models' variances explain (Mallows' Cp where the error is
 measured). Parameters are charged by the test, coverage is rewarded by the variances. The
 chosen model is then refined by re-weighted least squares on all matches within the threshold.
+
+Last, with `perspective_prior` > 0, a model below the homography is relaxed into a homography
+whose departure from that model has a Gaussian prior (a MAP fit): where the matches span the
+frame they pull the perspective terms to the truth, where they sit on one side the prior keeps
+the simpler model's extrapolation. Consecutive views of a curved retina differ by a few pixels
+of perspective at the corners; a similarity that ignores them biases each step's scale the
+same way, and those biases add up along the video.
 """
 
 from __future__ import annotations
@@ -185,6 +192,20 @@ def _homography_jacobian(H: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.
     return np.stack([px, py], 1), J
 
 
+def _departure(model: str) -> tuple[np.ndarray, np.ndarray]:
+    """(D, d): the homography's 8 free entries p lie on `model`'s manifold where D p = d."""
+    rows: list[tuple[dict[int, float], float]] = [({6: 1.0}, 0.0), ({7: 1.0}, 0.0)]
+    if model == "similarity":  # h00 = h11, h01 = -h10
+        rows += [({0: 0.5, 4: -0.5}, 0.0), ({1: 0.5, 3: 0.5}, 0.0)]
+    elif model == "translation":  # the linear part is the identity
+        rows += [({0: 1.0}, 1.0), ({1: 1.0}, 0.0), ({3: 1.0}, 0.0), ({4: 1.0}, 1.0)]
+    D = np.zeros((len(rows), 8))
+    for i, (coefficients, _) in enumerate(rows):
+        for j, c in coefficients.items():
+            D[i, j] = c
+    return D, np.array([target for _, target in rows])
+
+
 @dataclass(frozen=True)
 class _Fit:
     """A model fitted by weighted least squares in normalised coordinates."""
@@ -243,6 +264,40 @@ def _fit(model: str, a: np.ndarray, b: np.ndarray, w: np.ndarray, M0: np.ndarray
     if not np.isfinite(M).all() or not np.isfinite(JtJ_inv).all():
         return None
     return _Fit(model, M, JtJ_inv, float(r @ r))
+
+
+def _fit_with_prior(
+    base: _Fit, a: np.ndarray, b: np.ndarray, w: np.ndarray, sigma2: float, prior_sd: float
+) -> _Fit | None:
+    """MAP homography: weighted least squares of the transfer error plus a Gaussian prior of
+    sd `prior_sd` (normalised units) on the departure from `base`'s model; from `base`."""
+    D, d = _departure(base.model)
+    lam = sigma2 / prior_sd**2  # the prior in units of the residuals' noise
+    sw = np.sqrt(w)[:, None, None]
+    M = base.M / base.M[2, 2]
+    for _ in range(5):
+        mapped, J = _homography_jacobian(M, a)
+        r = ((b - mapped)[:, :, None] * sw).reshape(-1)
+        J2 = (J * sw).reshape(-1, 8)
+        p = M.ravel()[:8]
+        normal = J2.T @ J2 + lam * D.T @ D
+        try:
+            step = np.linalg.solve(normal, J2.T @ r - lam * D.T @ (D @ p - d))
+        except np.linalg.LinAlgError:
+            return None
+        M = M + np.append(step, 0.0).reshape(3, 3)
+        if np.abs(step).max() < 1e-10:
+            break
+    mapped, J = _homography_jacobian(M, a)
+    r = ((b - mapped)[:, :, None] * sw).reshape(-1)
+    J2 = (J * sw).reshape(-1, 8)
+    try:
+        cov = np.linalg.inv(J2.T @ J2 + lam * D.T @ D)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.isfinite(M).all() or not np.isfinite(cov).all():
+        return None
+    return _Fit("homography", M, cov, float(r @ r))
 
 
 def _normaliser(shape: tuple[int, int]) -> np.ndarray:
@@ -355,6 +410,12 @@ def estimate_motion(
         fit = None
     if fit is None:
         return consensus
+    chosen = fit.model
+    if config.perspective_prior > 0 and chosen != "homography" and inliers.sum() >= 4:
+        a, b, w = a_all[inliers], b_all[inliers], w_all[inliers]
+        dof = max(2 * len(a) - N_PARAMS[chosen], 1)
+        sigma2 = max(fit.rss / dof, 1e-12) * _inflation(a, T)
+        fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
     if model != "auto":
         corner_sd = float("nan")
     return _checked(
@@ -363,7 +424,7 @@ def estimate_motion(
         xy_cur,
         xy_prev,
         config,
-        fit.model,
+        chosen,
         coverage=inlier_coverage(xy_cur[inliers], shape),
         corner_sd_px=corner_sd / T[0, 0] if np.isfinite(corner_sd) else float("nan"),
     )

@@ -77,7 +77,8 @@ def test_similarity_chosen_when_inliers_cover_a_third_of_the_frame():
     models, err_auto, err_h = [], [], []
     for _ in range(8):
         cur, prev, H_true = _similarity_pair(rng, 180, 220)
-        reg = estimate_motion(cur, prev, RegistrationConfig(model="auto"), (350, 660))
+        config = RegistrationConfig(model="auto", perspective_prior=0.0)
+        reg = estimate_motion(cur, prev, config, (350, 660))
         assert reg.ok
         models.append(reg.model)
         assert 0.25 < reg.coverage < 0.36
@@ -104,7 +105,8 @@ def test_a_forced_model_is_of_its_class(model):
     rng = np.random.default_rng(6)
     rigid = model == "translation"
     cur, prev, _ = _similarity_pair(rng, 200, 660, angle=0.0 if rigid else 3.0, scale=1.0)
-    reg = estimate_motion(cur, prev, RegistrationConfig(model=model), (350, 660))
+    config = RegistrationConfig(model=model, perspective_prior=0.0)
+    reg = estimate_motion(cur, prev, config, (350, 660))
     assert reg.ok and reg.model == model
     H = reg.H_cur_to_prev
     if model != "homography":
@@ -124,3 +126,33 @@ def test_refined_model_keeps_the_true_inliers_and_rejects_the_outliers():
     reg = estimate_motion(cur, prev, RegistrationConfig(model="auto"), (350, 660))
     assert reg.inliers[true_inliers].mean() > 0.97
     assert reg.inliers[~true_inliers].sum() <= 2
+
+
+def _mean_corner_errors(rng, x_max, prior, perspective=(3e-5, -2e-5), trials=8):
+    errors = {"pure": [], "prior": [], "homography": []}
+    for _ in range(trials):
+        cur, prev, H_true = _similarity_pair(rng, 200, x_max, perspective=perspective)
+        for name, config in (
+            ("pure", RegistrationConfig(perspective_prior=0.0)),
+            ("prior", RegistrationConfig(perspective_prior=prior)),
+            ("homography", RegistrationConfig(model="homography")),
+        ):
+            reg = estimate_motion(cur, prev, config, (350, 660))
+            assert reg.ok and reg.model == config.model
+            errors[name].append(corner_error(reg.H_cur_to_prev, H_true, (660, 350)))
+    return {k: float(np.median(v)) for k, v in errors.items()}
+
+
+def test_perspective_prior_recovers_a_mild_perspective_seen_across_the_frame():
+    """A few pixels of perspective at the corners: the pure similarity is biased by them, the
+    similarity relaxed under the prior follows them."""
+    e = _mean_corner_errors(np.random.default_rng(8), 660, prior=0.01)
+    assert e["pure"] > 2.0, e
+    assert e["prior"] < 0.3 * e["pure"] and e["prior"] < 1.0, e
+
+
+def test_perspective_prior_keeps_the_simple_model_where_matches_sit_on_one_side():
+    """Matches on a third of the frame: the prior holds the perspective terms back from
+    extrapolating into the empty side, where the homography's run free."""
+    e = _mean_corner_errors(np.random.default_rng(9), 220, prior=0.01, perspective=(0.0, 0.0))
+    assert e["prior"] < 0.8 and e["prior"] < 0.75 * e["homography"], e
