@@ -25,8 +25,9 @@ import numpy as np
 from mosaic.config import Config, with_overrides
 from mosaic.errors import MosaicError
 from mosaic.features import resolve_precision
-from mosaic.io import Frame, open_frames, sample_image_path
-from mosaic.pipeline import STAGES, MosaicBuilder
+from mosaic.io import Frame, sample_image_path
+from mosaic.pipeline import STAGES, FrameRecord
+from mosaic.runner import run_video
 from mosaic.synth import SynthParams, write_synthetic_video
 from mosaic.viz import Viewer
 
@@ -88,37 +89,41 @@ def _timed(frames: Iterable[Frame], out: list[float]) -> Iterator[Frame]:
 
 
 def run_variant(name: str, video: Path, config: Config, viewer: Viewer | None = None) -> BenchRow:
-    """Process the whole video once (as `mosaic build` does) and collect per-stage timings.
+    """Process the whole video once (`runner.run_video`, as `mosaic build` does, without the
+    re-render) and collect per-stage timings.
 
     `frame` is the wall time between two registered frames as the caller sees them: with
     `[pipeline] overlap` the extraction of the next frame runs meanwhile in another thread.
     """
-    builder = MosaicBuilder(config, viewer=viewer)
     decode: list[float] = []
     frame_ms: list[float] = []
     stage: dict[str, list[float]] = {s: [] for s in STAGES}
-    with open_frames(video) as source:
-        records = builder.stream(_timed(source, decode))
-        start = time.perf_counter()
-        timed_from = start
-        count = 0
-        while True:
-            t0 = time.perf_counter()
-            record = next(records, None)
-            if record is None:
-                break
-            t1 = time.perf_counter()
-            count += 1
-            if count == WARMUP_FRAMES:
-                timed_from = t1
-            if count <= WARMUP_FRAMES:
-                continue
-            frame_ms.append((t1 - t0) * 1e3)
-            for s in STAGES:
-                stage[s].append(record.stage_ms.get(s, 0.0))
-        elapsed = time.perf_counter() - timed_from
-    result = builder.finish()
-    summary = result.report["summary"]
+    count = 0
+    last = timed_from = time.perf_counter()
+
+    def on_record(record: FrameRecord) -> None:
+        nonlocal count, last, timed_from
+        t0, last = last, time.perf_counter()
+        count += 1
+        if count == WARMUP_FRAMES:
+            timed_from = last
+        if count <= WARMUP_FRAMES:
+            return
+        frame_ms.append((last - t0) * 1e3)
+        for s in STAGES:
+            stage[s].append(record.stage_ms.get(s, 0.0))
+
+    run = run_video(
+        video,
+        config,
+        viewer=viewer,
+        on_record=on_record,
+        wrap_frames=lambda source: _timed(source, decode),
+        rerender=False,
+        salvage=False,
+    )
+    elapsed = last - timed_from
+    summary = run.summary
     decode = decode[WARMUP_FRAMES:]
     stage_ms = {"decode": _median_p90(decode)} | {s: _median_p90(v) for s, v in stage.items()}
     timed = max(count - WARMUP_FRAMES, 0)

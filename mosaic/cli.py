@@ -7,18 +7,16 @@ on stderr and exit code 2; Ctrl-C during `build` still writes the partial mosaic
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
 import typer
-from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from glampoints.detector import WeightsError
@@ -26,16 +24,16 @@ from mosaic.config import Config, load_config, with_overrides
 from mosaic.errors import InputError, MosaicError
 from mosaic.features import DETECTORS, FeatureExtractor
 from mosaic.io import (
+    VideoInfo,
     check_output_path,
     open_frames,
     read_image,
-    write_image,
-    write_json,
 )
-from mosaic.pipeline import MosaicBuilder, MosaicResult, register_pair
+from mosaic.pipeline import register_pair
 from mosaic.registration import MODELS
+from mosaic.runner import Outputs, run_video
 from mosaic.synth import SynthParams, pick_source, write_synthetic_video
-from mosaic.viz import VIEWER_MODES, RerunViewer, make_viewer
+from mosaic.viz import VIEWER_MODES, RerunViewer, Viewer, make_viewer
 
 app = typer.Typer(
     add_completion=False,
@@ -44,6 +42,7 @@ app = typer.Typer(
 )
 log = logging.getLogger("mosaic")
 
+EXIT_FAILED = 1
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
 
@@ -80,41 +79,6 @@ def _config(
     if pipeline:
         overrides["pipeline"] = pipeline
     return with_overrides(config, **overrides) if overrides else config
-
-
-def _reread(video: Path, step: int, max_frames: int) -> Callable[[], Iterator[tuple[int, Any]]]:
-    """Re-open the input for rendering the refined mosaic (a second pass, with progress)."""
-
-    def frames() -> Iterator[tuple[int, Any]]:
-        with open_frames(video, step, max_frames) as source:
-            total = source.expected_frames
-            for frame in tqdm(source, total=total, unit="frame", desc="render", leave=False):
-                yield frame.index, frame.image
-
-    return frames
-
-
-def _segment_path(output: Path, index: int) -> Path:
-    return output.with_name(f"{output.stem}_seg{index:03d}{output.suffix}")
-
-
-def _write_outputs(result: MosaicResult, output: Path, report_path: Path, extra: dict) -> None:
-    """Write the main mosaic, every segment when there are several, and the report."""
-    report = {**extra, **result.report}
-    main = result.main
-    if main is None:
-        raise MosaicError("no frame could be placed on the mosaic; nothing written")
-    write_image(output, main.image)
-    report["mosaic"] = str(output)
-    report["main_segment"] = main.index
-    if len(result.segments) > 1:
-        for segment, entry in zip(result.segments, report["segments"], strict=True):
-            path = _segment_path(output, segment.index)
-            write_image(path, segment.image)
-            entry["mosaic"] = str(path)
-    else:
-        report["segments"][0]["mosaic"] = str(output)
-    write_json(report_path, report)
 
 
 def _print_summary(summary: dict[str, Any], output: Path, report_path: Path) -> None:
@@ -210,56 +174,53 @@ def build(
 ) -> None:
     """Build a retina mosaic from a video, streaming frame by frame."""
     _setup_logging(verbose)
-    with _user_errors():
-        config = _config(
-            config_path,
-            detector,
-            max_frames=max_frames,
-            step=step,
-            on_failure=on_failure,
-            strategy=strategy,
-        )
-        output = check_output_path(output)
-        report_path = check_output_path(report or output.with_suffix(".json"))
-        rerun, rerun_target = _viewer_args(rerun, rerun_target, viewer_flag, output)
-        interrupted = False
-        with open_frames(video, config.pipeline.step, config.pipeline.max_frames) as frames:
-            info = frames.info
-            viewer = make_viewer(rerun, rerun_target, config, info, canvas_every=rerun_canvas_every)
-            if isinstance(viewer, RerunViewer) and viewer.url:
-                typer.echo(f"rerun viewer: {viewer.url}")
-            builder = MosaicBuilder(config, viewer=viewer)
-            total = info.n_frames
-            if total is not None:
-                total = -(-total // config.pipeline.step)
-                if config.pipeline.max_frames:
-                    total = min(total, config.pipeline.max_frames)
-            registered = 0
-            try:
-                with (
-                    logging_redirect_tqdm(),
-                    tqdm(total=total, unit="frame", desc="mosaic", dynamic_ncols=True) as bar,
-                ):
-                    for record in builder.stream(frames):
-                        registered += record.status == "registered"
-                        bar.set_postfix(registered=registered, refresh=False)
-                        bar.update()
-                        if builder.stopped:
-                            break
-            except KeyboardInterrupt:
-                interrupted = True
-                typer.echo("interrupted: writing the partial mosaic and report", err=True)
-        reread = _reread(video, config.pipeline.step, config.pipeline.max_frames)
-        result = builder.finish(interrupted=interrupted, reread=reread)
-        extra = {"input": {**dataclasses.asdict(info), "path": str(info.path)}}
-        _write_outputs(result, output, report_path, extra)
-        _print_summary(result.report["summary"], output, report_path)
-        if rerun == "save":
-            typer.echo(f"recording: {rerun_target}")
-    if interrupted:
+    made: list[Viewer] = []
+    try:
+        with _user_errors():
+            config = _config(
+                config_path,
+                detector,
+                max_frames=max_frames,
+                step=step,
+                on_failure=on_failure,
+                strategy=strategy,
+            )
+            output = check_output_path(output)
+            report_path = check_output_path(report or output.with_suffix(".json"))
+            rerun, rerun_target = _viewer_args(rerun, rerun_target, viewer_flag, output)
+
+            def viewer(info: VideoInfo) -> Viewer:
+                made.append(
+                    make_viewer(rerun, rerun_target, config, info, canvas_every=rerun_canvas_every)
+                )
+                if isinstance(made[0], RerunViewer) and made[0].url:
+                    typer.echo(f"rerun viewer: {made[0].url}")
+                return made[0]
+
+            run = run_video(
+                video,
+                config,
+                Outputs(mosaic=output, report=report_path),
+                viewer=viewer,
+                progress="mosaic",
+                opener=open_frames,  # looked up here: tests replace it
+            )
+            if run.interrupted:
+                typer.echo("interrupted: partial mosaic and report written", err=True)
+            elif run.error is not None:
+                typer.echo(f"error: {run.error}; the live mosaic and report written", err=True)
+            _print_summary(run.summary, output, report_path)
+            if rerun == "save":
+                typer.echo(f"recording: {rerun_target}")
+    except KeyboardInterrupt:  # before the first frame or while writing: nothing to save
+        typer.echo("interrupted", err=True)
+        raise typer.Exit(EXIT_INTERRUPTED) from None
+    if run.interrupted:
         raise typer.Exit(EXIT_INTERRUPTED)
+    if run.error is not None:
+        raise typer.Exit(EXIT_FAILED)
     if rerun == "serve":
-        _serve_until_interrupted(getattr(viewer, "url", None))
+        _serve_until_interrupted(getattr(made[0] if made else None, "url", None))
 
 
 def _parse_size(size: str) -> tuple[int, int]:

@@ -9,14 +9,15 @@ the control points for FIRE) with MEE / RMSE per class. Every pair also gets the
 error (mean ground-truth point error at full resolution, inf when failed), from which the AUC
 over thresholds 1..25 px, its 0..25 integral variant, per-category AUCs and mAUC follow.
 
-Videos (`evaluate_video`): `MosaicBuilder` runs the video with `on_failure = "skip"`; frames are
-checked against the synthetic ground truth (`*.gt.json`) when there is one: each frame's placement
-against the first frame (corner error, drift) and against the frame it was registered to (step
-error); the report's motion models are counted per video, and its per-frame quality score is
-compared with the corner error (rank correlation, bad frames flagged, good frames flagged). Each
-run's full report is kept under `reports/`. With a readable source photograph, the mosaic itself
-is scored against it (`mosaic.fidelity`, issue 16: fidelity and good area), next to the oracle
-(the plain mean of the frames placed by the true transforms, computed once per video).
+Videos (`evaluate_video`): `runner.run_video` (the code path of `mosaic build`) runs the video
+with `on_failure = "skip"`; frames are checked against the synthetic ground truth (`*.gt.json`)
+when there is one: each frame's placement against the first frame (corner error, drift) and
+against the frame it was registered to (step error); the report's motion models are counted per
+video, and its per-frame quality score is compared with the corner error (rank correlation, bad
+frames flagged, good frames flagged). Each run's full report is kept under `reports/`. With a
+readable source photograph, the mosaic itself is scored against it (`mosaic.fidelity`, issue 16:
+fidelity and good area), next to the oracle (the plain mean of the frames placed by the true
+transforms, computed once per video).
 
 Outputs (`write_pair_outputs`, `write_video_outputs`): CSV and JSON tables, per-pair/per-video
 rows and PNG plots. Pure metric definitions live in `glampoints.metrics`, not here.
@@ -30,7 +31,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -52,13 +53,15 @@ from mosaic.fidelity import (
     oracle_fidelity,
     prepare_source,
 )
-from mosaic.io import IMAGE_READ_SUFFIXES, open_frames, read_image, write_json
+from mosaic.io import read_image, write_json
 from mosaic.matching import distance_matrix, match_descriptors
-from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicBuilder, MosaicResult
+from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicResult
 from mosaic.preprocess import field_of_view_mask, prepare, scale_matrix, to_gray
 from mosaic.quality import spearman
 from mosaic.registration import MODELS as MOTION_MODELS
 from mosaic.registration import estimate_homography
+from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
+from mosaic.runner import reread_frames as _reread
 from mosaic.synth import corner_error, gt_path_for, load_ground_truth, relative_homographies
 
 log = logging.getLogger(__name__)
@@ -66,7 +69,6 @@ log = logging.getLogger(__name__)
 EPS_PX = 3.0  # correctness radius of a keypoint / match (paper: 3 px)
 FIRE_SCALE = 0.15  # the paper's FIRE protocol: 2912 px images downscaled to 15 % for detection
 ACCURATE_CORNER_ERROR_PX = 10.0  # a video frame further than this from the truth is a failure
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv")
 CLASSES = ("failed", "inaccurate", "acceptable")
 
 
@@ -625,8 +627,7 @@ def find_videos(paths: Sequence[str | Path]) -> list[Path]:
         if p.is_file():
             found.append(p)
             continue
-        has_images = any(f.suffix.lower() in IMAGE_READ_SUFFIXES for f in p.iterdir())
-        if has_images:
+        if is_frame_folder(p):
             found.append(p)
             continue
         inner = sorted(
@@ -789,17 +790,6 @@ def _unique_stems(videos: Sequence[Path]) -> list[str]:
     return stems
 
 
-def _reread(path: Path, step: int, max_frames: int) -> Callable[[], Iterator[tuple[int, Any]]]:
-    """A second pass over the video, for the pipeline's re-rendering from refined poses."""
-
-    def frames() -> Iterator[tuple[int, Any]]:
-        with open_frames(path, step, max_frames) as source:
-            for frame in source:
-                yield frame.index, frame.image
-
-    return frames
-
-
 @dataclass(frozen=True)
 class FidelityReference:
     """A video's truth for the mosaic-fidelity scores, shared by all its runs."""
@@ -934,26 +924,17 @@ def evaluate_video(
     to score several runs of one video with one oracle).
     """
     config = with_overrides(config, pipeline={"on_failure": "skip"})
-    builder = MosaicBuilder(config, extractor=extractor)
-    with open_frames(path, config.pipeline.step, config.pipeline.max_frames) as source:
-        frames = tqdm(
-            source,
-            total=source.expected_frames,
-            unit="frame",
-            desc=f"{extractor.detector.name} {path.name}",
-            disable=not progress,
-            leave=False,
-        )
-        for _ in builder.stream(frames):
-            pass
-        size = (source.info.width, source.info.height)
-        info = source.info
-    reread = _reread(path, config.pipeline.step, config.pipeline.max_frames)
-    result = builder.finish(reread=reread)  # refined poses, as `mosaic build` reports
-    report = result.report
-    if report_path is not None:
-        write_json(report_path, {"input": dataclasses.asdict(info), **report})
-    frames, summary = report["frames"], report["summary"]
+    run = run_video(  # refined poses, as `mosaic build` reports
+        path,
+        config,
+        Outputs(report=report_path),
+        extractor=extractor,
+        progress=f"{extractor.detector.name} {path.name}" if progress else None,
+        salvage=False,
+    )
+    result, info = run.result, run.info
+    size = (info.width, info.height)
+    frames, summary = result.report["frames"], result.report["summary"]
     gt_file = gt_path_for(path)
     errors: dict[int, float] | None = None
     steps: dict[int, float] = {}

@@ -1,0 +1,296 @@
+"""One video, end to end: the single code path of `mosaic build`, `batch`, `evaluate` and `bench`.
+
+`run_video` opens the input, streams its frames through `MosaicBuilder`, finishes (pose-graph
+refinement, then the re-render from a second read of the input), and writes the outputs it is
+given: the mosaic segment(s) and a thumbnail first, the report last, each atomically (temporary
+file, then `os.replace`). The report's `summary.complete` is true only for a run that ended
+normally, so a report saying so means every output beside it is whole (`mosaic batch --resume`
+relies on it).
+
+Ctrl-C while streaming or while refining / re-rendering, or an exception in either, does not lose
+the run (`salvage`): the live canvas and the unrefined poses of the frames processed so far are
+written instead, with `summary.interrupted` (and `summary.error` after an exception) and
+`summary.complete = false`; the caller reads `VideoRun.interrupted` / `VideoRun.error` for its
+exit code.
+
+Also here, as the one home of "what is a video": the video suffixes and what makes a folder a
+video (a folder of frames).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from mosaic.config import Config
+from mosaic.errors import MosaicError
+from mosaic.features import FeatureExtractor
+from mosaic.io import (
+    IMAGE_READ_SUFFIXES,
+    Frame,
+    FrameSource,
+    VideoInfo,
+    check_output_path,
+    open_frames,
+    write_image,
+    write_json,
+)
+from mosaic.pipeline import MosaicBuilder, MosaicResult, Reread
+from mosaic.viz import Viewer
+
+log = logging.getLogger(__name__)
+
+#: Suffixes (lower case) of the files taken for videos when searching folders.
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv")
+#: Longer side of the thumbnail of the main mosaic (pixels).
+THUMBNAIL_SIDE_PX = 320
+
+Opener = Callable[[Path, int, int], FrameSource]
+
+
+def is_frame_folder(path: Path) -> bool:
+    """Whether `path` is a folder holding image files: a video given as its frames."""
+    return path.is_dir() and any(
+        f.suffix.lower() in IMAGE_READ_SUFFIXES and f.is_file() for f in path.iterdir()
+    )
+
+
+def expected_frames(info: VideoInfo, step: int, max_frames: int) -> int | None:
+    """Frames a run will read (after `step` and `max_frames`), None if the input does not say."""
+    if info.n_frames is None:
+        return max_frames or None
+    n = -(-info.n_frames // step)
+    return min(n, max_frames) if max_frames else n
+
+
+def reread_frames(
+    video: Path, step: int, max_frames: int, progress: bool = False, opener: Opener = open_frames
+) -> Callable[[], Iterator[tuple[int, np.ndarray | None]]]:
+    """A second (third, ...) pass over the input: `(index, image)` of every frame, for the
+    re-render from refined poses (and the evaluation's oracle); `progress`: a "render" bar."""
+
+    def frames() -> Iterator[tuple[int, np.ndarray | None]]:
+        with opener(video, step, max_frames) as source:
+            total = expected_frames(source.info, step, max_frames)
+            bar = tqdm(source, total=total, unit="frame", desc="render", leave=False)
+            for frame in bar if progress else source:
+                yield frame.index, frame.image
+
+    return frames
+
+
+def segment_path(output: Path, index: int) -> Path:
+    """Where segment `index` of a run with several segments is written, beside `output`."""
+    return output.with_name(f"{output.stem}_seg{index:03d}{output.suffix}")
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """The files a run writes; None: not written. Segments go beside the mosaic when several."""
+
+    mosaic: Path | None = None
+    report: Path | None = None
+    thumbnail: Path | None = None
+
+    def checked(self) -> Outputs:
+        """The same paths, each checked writable (folder exists, format known) before the run."""
+        return Outputs(*(None if p is None else check_output_path(p) for p in self.paths()))
+
+    def paths(self) -> tuple[Path | None, Path | None, Path | None]:
+        return self.mosaic, self.report, self.thumbnail
+
+
+@dataclass(frozen=True)
+class VideoRun:
+    """What one run of a video gave: the input, the result, and the report as written."""
+
+    info: VideoInfo
+    result: MosaicResult
+    report: dict[str, Any]  # `result.report` with the input, the output paths, completeness
+    interrupted: bool = False  # Ctrl-C: the frames so far, live canvas, unrefined poses
+    error: str | None = None  # an exception after which the same was written instead
+
+    @property
+    def complete(self) -> bool:
+        return not self.interrupted and self.error is None
+
+    @property
+    def summary(self) -> dict[str, Any]:
+        return self.report["summary"]
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+def _stream(
+    builder: MosaicBuilder,
+    frames: Iterable[Frame],
+    total: int | None,
+    progress: str | None,
+    on_record: Callable[[Any], None] | None,
+) -> None:
+    with ExitStack() as stack:
+        bar = None
+        if progress is not None:
+            stack.enter_context(logging_redirect_tqdm())
+            bar = stack.enter_context(
+                tqdm(total=total, unit="frame", desc=progress, dynamic_ncols=True)
+            )
+        registered = 0
+        for record in builder.stream(frames):
+            if on_record is not None:
+                on_record(record)
+            if bar is not None:
+                registered += record.status == "registered"
+                bar.set_postfix(registered=registered, refresh=False)
+                bar.update()
+            if builder.stopped:
+                break
+
+
+def run_video(
+    video: str | Path,
+    config: Config,
+    outputs: Outputs = Outputs(),
+    *,
+    extractor: FeatureExtractor | None = None,
+    viewer: Viewer | Callable[[VideoInfo], Viewer] | None = None,
+    progress: str | None = None,
+    on_record: Callable[[Any], None] | None = None,
+    wrap_frames: Callable[[FrameSource], Iterable[Frame]] | None = None,
+    rerender: bool = True,
+    salvage: bool = True,
+    opener: Opener = open_frames,
+) -> VideoRun:
+    """Build the mosaic of one video and write `outputs` (the report last); see the module doc.
+
+    `viewer`: a viewer, or a factory called with the opened input's `VideoInfo`. `progress`:
+    the label of a frame progress bar (None: no bar). `on_record` sees each `FrameRecord` as it
+    is registered; `wrap_frames` wraps the opened frame source (e.g. to time decoding).
+    `rerender` False keeps the live canvas (no second read). `salvage` False lets Ctrl-C and
+    exceptions propagate with nothing written. `opener` opens the input (`io.open_frames`).
+
+    Raises `MosaicError` for an unusable input or output, and (after writing the report) when
+    no frame could be placed on a mosaic that `outputs` asks for.
+    """
+    video = Path(video)
+    started = time.perf_counter()
+    outputs = outputs.checked()
+    step, max_frames = config.pipeline.step, config.pipeline.max_frames
+    interrupted, error = False, None
+    with opener(video, step, max_frames) as source:
+        info = source.info
+        made = viewer(info) if callable(viewer) else viewer
+        builder = MosaicBuilder(config, extractor=extractor, viewer=made)
+        frames = source if wrap_frames is None else wrap_frames(source)
+        try:
+            _stream(builder, frames, expected_frames(info, step, max_frames), progress, on_record)
+        except KeyboardInterrupt:
+            if not salvage:
+                raise
+            interrupted = True
+            log.warning("interrupted: writing the partial mosaic and report")
+        except Exception as exc:
+            if not salvage:
+                raise
+            error = f"failed while registering: {_one_line(exc)}"
+            log.error("%s; writing the mosaic so far", error, exc_info=True)
+    if interrupted or error is not None:
+        result = builder.finish(interrupted=True)
+    else:
+        reread = reread_frames(video, step, max_frames, progress is not None, opener)
+        result = _finish(builder, reread if rerender else None, salvage)
+        if isinstance(result, str | KeyboardInterrupt):
+            interrupted = isinstance(result, KeyboardInterrupt)
+            error = None if interrupted else result
+            result = builder.finish(interrupted=True)
+    report = _write_outputs(result, outputs, info, started, interrupted, error)
+    return VideoRun(info, result, report, interrupted, error)
+
+
+def _finish(
+    builder: MosaicBuilder, reread: Reread | None, salvage: bool
+) -> MosaicResult | str | KeyboardInterrupt:
+    """Refine and re-render; with `salvage`, a Ctrl-C or the error message instead of raising."""
+    try:
+        return builder.finish(reread=reread)
+    except KeyboardInterrupt as exc:
+        if not salvage:
+            raise
+        log.warning("interrupted while refining / rendering: writing the live mosaic")
+        return exc
+    except Exception as exc:
+        if not salvage:
+            raise
+        error = f"failed while refining / rendering: {_one_line(exc)}"
+        log.error("%s; writing the live mosaic and unrefined poses", error, exc_info=True)
+        return error
+
+
+def thumbnail(image: np.ndarray, side_px: int = THUMBNAIL_SIDE_PX) -> np.ndarray:
+    """`image` shrunk so that its longer side is at most `side_px` (area interpolation)."""
+    h, w = image.shape[:2]
+    scale = side_px / max(h, w)
+    if scale >= 1.0:
+        return image
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def _write_outputs(
+    result: MosaicResult,
+    outputs: Outputs,
+    info: VideoInfo,
+    started: float,
+    interrupted: bool,
+    error: str | None,
+) -> dict[str, Any]:
+    """Segments, mosaic, thumbnail, then the report (its `summary.complete` marks them whole)."""
+    report: dict[str, Any] = {
+        "input": {**dataclasses.asdict(info), "path": str(info.path)},
+        **result.report,
+    }
+    summary = report["summary"]
+    main = result.main
+    if outputs.mosaic is not None and main is not None:
+        output = outputs.mosaic
+        if len(result.segments) > 1:
+            for segment, entry in zip(result.segments, report["segments"], strict=True):
+                path = segment_path(output, segment.index)
+                write_image(path, segment.image)
+                entry["mosaic"] = str(path)
+        else:
+            report["segments"][0]["mosaic"] = str(output)
+        write_image(output, main.image)
+        report["mosaic"] = str(output)
+        report["main_segment"] = main.index
+        if outputs.thumbnail is not None:
+            write_image(outputs.thumbnail, thumbnail(main.image))
+            report["thumbnail"] = str(outputs.thumbnail)
+    summary["complete"] = not interrupted and error is None
+    if not summary["complete"]:  # the live canvas and poses were kept
+        summary["interrupted"] = interrupted
+        if isinstance(summary.get("tracking"), dict):
+            summary["tracking"]["rerendered"] = False
+    if error is not None:
+        summary["error"] = error
+    summary["wall_time_s"] = round(time.perf_counter() - started, 3)
+    if outputs.report is not None:
+        write_json(outputs.report, report)
+    if outputs.mosaic is not None and main is None:
+        written = f" (report: {outputs.report})" if outputs.report is not None else ""
+        raise MosaicError(f"no frame could be placed on the mosaic{written}")
+    return report
