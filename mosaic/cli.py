@@ -223,6 +223,90 @@ def build(
         _serve_until_interrupted(getattr(made[0] if made else None, "url", None))
 
 
+@app.command()
+def batch(
+    source: Annotated[
+        Path,
+        typer.Argument(
+            metavar="INPUT",
+            help="Folder searched recursively for videos and folders of frames, or a CSV "
+            "manifest (columns video, optional config and id).",
+        ),
+    ],
+    out_dir: Annotated[
+        Path, typer.Option("--output", "-o", help="Output folder: OUT_DIR/<id>/ per video.")
+    ],
+    config_path: Annotated[
+        Path | None, typer.Option("--config", "-c", help="TOML config for every video.")
+    ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(min=1, help="local: worker processes (default: half the cores)."),
+    ] = None,
+    engine: Annotated[
+        str, typer.Option(help="local (a process pool) | ray (one Ray task per video).")
+    ] = "local",
+    ray_address: Annotated[
+        str | None,
+        typer.Option(help="ray: the cluster to join (default: start a local Ray)."),
+    ] = None,
+    cpus_per_video: Annotated[
+        int | None,
+        typer.Option(
+            min=1,
+            help="Threads (local) or Ray num_cpus (ray) per video "
+            "(default: the cores shared by the workers; ray: 1).",
+        ),
+    ] = None,
+    resume: Annotated[
+        bool,
+        typer.Option(
+            "--resume/--no-resume",
+            help="Skip videos whose report says complete (--no-resume redoes them).",
+        ),
+    ] = True,
+    pattern: Annotated[
+        str | None,
+        typer.Option(
+            help="Glob on paths relative to INPUT (or names) picking the videos, e.g. '*.avi'."
+        ),
+    ] = None,
+    rerun: Annotated[str, typer.Option(help="off | save (OUT_DIR/<id>/recording.rrd).")] = "off",
+    verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+) -> None:
+    """Build the mosaics of many videos: one folder per video, OUT_DIR/summary.csv / .json and
+    a browsable OUT_DIR/index.html. Exit 0: all built, 1: any failed, 130: interrupted."""
+    from mosaic.batch import run_batch
+
+    _setup_logging(verbose)
+    try:
+        with _user_errors():
+            config = load_config(config_path)
+            result = run_batch(
+                source,
+                out_dir,
+                config,
+                workers=workers,
+                engine=engine,
+                ray_address=ray_address,
+                cpus_per_video=cpus_per_video,
+                resume=resume,
+                pattern=pattern,
+                rerun=rerun,
+            )
+    except KeyboardInterrupt:
+        typer.echo("interrupted", err=True)
+        raise typer.Exit(EXIT_INTERRUPTED) from None
+    counts = ", ".join(f"{n} {status}" for status, n in result.counts.items() if n)
+    typer.echo(f"{len(result.rows)} videos: {counts}")
+    typer.echo(f"summary: {Path(out_dir) / 'index.html'}")
+    if result.interrupted:
+        typer.echo("interrupted: rerun the same command to resume", err=True)
+        raise typer.Exit(EXIT_INTERRUPTED)
+    if result.failed:
+        raise typer.Exit(EXIT_FAILED)
+
+
 def _parse_size(size: str) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in size.lower().split("x"))

@@ -83,8 +83,10 @@ def reread_frames(
     def frames() -> Iterator[tuple[int, np.ndarray | None]]:
         with opener(video, step, max_frames) as source:
             total = expected_frames(source.info, step, max_frames)
-            bar = tqdm(source, total=total, unit="frame", desc="render", leave=False)
-            for frame in bar if progress else source:
+            bar = tqdm(
+                source, total=total, unit="frame", desc="render", leave=False, disable=not progress
+            )
+            for frame in bar:
                 yield frame.index, frame.image
 
     return frames

@@ -1,0 +1,802 @@
+"""`mosaic batch`: many videos, on this machine (a process pool) or on a Ray cluster.
+
+`find_tasks` turns the input into one `VideoTask` per video: a folder is searched recursively
+(video files, and folders of frames as one video each), a CSV manifest lists them (`video`,
+optional `config` and `id`). `run_batch` skips the videos already done (`--resume`: their
+report says `summary.complete`, see `mosaic.runner`), runs the others with an engine, each
+through `process_video` (which calls `runner.run_video`, the code path of `mosaic build`), and
+keeps OUT_DIR/summary.csv, summary.json and index.html up to date.
+
+A video's failure is its row: an unreadable, empty or corrupt input, a bad per-video config, a
+crash of the process running it (the videos running beside it are tried again, alone) or of a
+Ray worker (Ray retries it first). Per video, OUT_DIR/<id>/ holds mosaic.png (and
+mosaic_segNNN.png when there are several segments), report.json, thumbnail.jpg and log.txt
+(this video's log, and OpenCV / ffmpeg's own messages), and recording.rrd with `--rerun save`.
+"""
+
+from __future__ import annotations
+
+import csv
+import fnmatch
+import html
+import io
+import json
+import logging
+import math
+import os
+import re
+import signal
+import sys
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+from mosaic.config import Config, load_config
+from mosaic.errors import InputError, MosaicError, OutputError
+from mosaic.io import _atomic_write_bytes, natural_key, write_json
+from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
+
+log = logging.getLogger(__name__)
+
+ENGINES = ("local", "ray")
+MOSAIC, REPORT, THUMBNAIL, LOG, RECORDING = (
+    "mosaic.png",
+    "report.json",
+    "thumbnail.jpg",
+    "log.txt",
+    "recording.rrd",
+)
+OK, FAILED, INTERRUPTED, NOT_RUN = "ok", "failed", "interrupted", "not run"
+#: Columns of summary.csv (summary.json has the same keys per video).
+COLUMNS = (
+    "id",
+    "status",
+    "frames",
+    "registered",
+    "registered_pct",
+    "frames_until_failure",
+    "segments",
+    "fps",
+    "time_s",
+    "error",
+    "video",
+    "mosaic",
+    "report",
+    "resumed",
+)
+#: Environment variables that size the thread pools of OpenMP (torch), BLAS and friends.
+THREAD_ENV = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+)
+RAY_HINT = "the ray engine needs Ray: pip install 'retina-mosaic[ray]'"
+SUMMARY_EVERY_S = 5.0  # summary files rewritten at most this often while the batch runs
+
+
+@dataclass(frozen=True)
+class VideoTask:
+    """One video of the batch: its id (the folder under OUT_DIR), its path, its config file."""
+
+    id: str
+    video: Path
+    config: Path | None = None  # a manifest's per-video config (replaces --config)
+    error: str | None = None  # a manifest row that cannot run: failed as it is
+
+
+@dataclass
+class BatchResult:
+    """The rows of the summary (one per video, in input order) and how the batch ended."""
+
+    rows: list[dict[str, Any]]
+    interrupted: bool = False
+    counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def failed(self) -> int:
+        return sum(row["status"] == FAILED for row in self.rows)
+
+
+# --------------------------------------------------------------------------------------------
+# Finding the videos
+# --------------------------------------------------------------------------------------------
+
+
+def safe_id(text: str) -> str:
+    """A folder name from a video's relative path: '/' becomes '__', odd characters '_'."""
+    text = text.replace("\\", "/").strip("/").replace("/", "__")
+    text = re.sub(r"[^A-Za-z0-9._-]+", "_", text).lstrip(".")
+    return text or "video"
+
+
+def _unique(ids: list[str]) -> list[str]:
+    seen: set[str] = set()
+    out = []
+    for base in ids:
+        name, k = base, 1
+        while name in seen:
+            k += 1
+            name = f"{base}-{k}"
+        seen.add(name)
+        out.append(name)
+    return out
+
+
+def _walk(
+    folder: Path, pattern: str | None, exclude: Path | None, root: Path | None = None
+) -> Iterator[Path]:
+    """Videos under `folder`, in natural order: files with a video suffix and folders of
+    frames (not searched further), those whose path relative to `root` or whose name `pattern`
+    matches; hidden entries and `exclude` are left out."""
+    root = root or folder
+    for path in sorted(folder.iterdir(), key=lambda p: natural_key(p.name)):
+        if path.name.startswith(".") or path == exclude:
+            continue
+        if path.is_dir() and not is_frame_folder(path):
+            yield from _walk(path, pattern, exclude, root)
+            continue
+        if path.is_file() and path.suffix.lower() not in VIDEO_SUFFIXES:
+            continue
+        rel = path.relative_to(root).as_posix()
+        if pattern is None or fnmatch.fnmatch(rel, pattern) or fnmatch.fnmatch(path.name, pattern):
+            yield path
+
+
+def find_tasks(
+    source: str | Path, pattern: str | None = None, exclude: str | Path | None = None
+) -> list[VideoTask]:
+    """The videos of a folder (recursive), of a CSV manifest, or one video file or folder.
+
+    Ids are the paths relative to the folder (manifest: its `id` column, else the same from
+    the `video` column) made into folder names, unique. `exclude` (the output folder) is not
+    searched. Raises `InputError` when there is nothing to run.
+    """
+    src = Path(source).expanduser()
+    if not src.exists():
+        raise InputError(f"input not found: {src}")
+    if src.is_file() and src.suffix.lower() == ".csv":
+        return read_manifest(src)
+    if src.is_file() or is_frame_folder(src):
+        return [VideoTask(safe_id(src.stem if src.is_file() else src.name), src.resolve())]
+    skip = Path(exclude).expanduser().resolve() if exclude is not None else None
+    root = src.resolve()
+    videos = list(_walk(root, pattern, skip))
+    if not videos:
+        what = f"matching {pattern!r}" if pattern else "(video files or folders of frames)"
+        raise InputError(f"no videos {what} under {src}")
+    ids = _unique([safe_id(_stem(v.relative_to(root))) for v in videos])
+    return [VideoTask(i, v) for i, v in zip(ids, videos, strict=True)]
+
+
+def _stem(rel: Path) -> str:
+    return rel.with_suffix("").as_posix() if rel.suffix else rel.as_posix()
+
+
+def read_manifest(path: Path) -> list[VideoTask]:
+    """Tasks of a CSV manifest: column `video` (paths relative to the manifest), optional
+    `config` (a TOML file per video, replacing --config) and `id`. A row without a video is a
+    failed row; duplicate ids are an error."""
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"cannot read manifest {path}: {exc}") from exc
+    if not rows or "video" not in rows[0]:
+        raise InputError(f"{path} must be a CSV with a 'video' column and at least one row")
+    base = path.parent.resolve()
+    tasks, ids = [], []
+    for number, row in enumerate(rows, start=2):  # line 1 is the header
+        video = (row.get("video") or "").strip()
+        config = (row.get("config") or "").strip()
+        given = (row.get("id") or "").strip()
+        ids.append(safe_id(given or (_stem(Path(video)) if video else f"row{number}")))
+        tasks.append(
+            VideoTask(
+                ids[-1],
+                (base / video).resolve() if video else base / f"row{number}",
+                (base / config).resolve() if config else None,
+                None if video else f"manifest row {number}: no video given",
+            )
+        )
+    explicit = [t.id for t, row in zip(tasks, rows, strict=True) if (row.get("id") or "").strip()]
+    duplicates = sorted({i for i in explicit if explicit.count(i) > 1})
+    if duplicates:
+        raise InputError(f"{path}: duplicate id(s) {', '.join(duplicates)}")
+    unique = _unique(ids)
+    return [VideoTask(u, t.video, t.config, t.error) for u, t in zip(unique, tasks, strict=True)]
+
+
+# --------------------------------------------------------------------------------------------
+# One video (runs in a worker process)
+# --------------------------------------------------------------------------------------------
+
+_IN_WORKER = False  # set in pool / Ray workers: stderr is captured into each video's log
+
+
+def limit_threads(threads: int) -> None:
+    """Size this process's torch, OpenCV and (through the environment, for what starts later)
+    BLAS thread pools to `threads`."""
+    import cv2
+    import torch
+
+    for name in THREAD_ENV:
+        os.environ[name] = str(threads)
+    torch.set_num_threads(threads)
+    cv2.setNumThreads(threads)
+
+
+@contextmanager
+def _video_log(path: Path) -> Iterator[None]:
+    """Send the mosaic / glampoints loggers (INFO and up) to `path` for the duration; in a
+    worker also the process's stderr (OpenCV and ffmpeg write there)."""
+    handler = logging.FileHandler(path, mode="w", encoding="utf-8")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    loggers = [logging.getLogger(name) for name in ("mosaic", "glampoints")]
+    saved = [(lg.level, lg.propagate) for lg in loggers]
+    for lg in loggers:
+        lg.addHandler(handler)
+        lg.setLevel(logging.INFO)
+        lg.propagate = not _IN_WORKER
+    saved_fd = None
+    if _IN_WORKER:
+        sys.stderr.flush()
+        saved_fd = os.dup(2)
+        os.dup2(handler.stream.fileno(), 2)
+    try:
+        yield
+    finally:
+        if saved_fd is not None:
+            sys.stderr.flush()
+            os.dup2(saved_fd, 2)
+            os.close(saved_fd)
+        for lg, (level, propagate) in zip(loggers, saved, strict=True):
+            lg.removeHandler(handler)
+            lg.setLevel(level)
+            lg.propagate = propagate
+        handler.close()
+
+
+def _folder_paths(out_dir: Path, task_id: str) -> dict[str, Path]:
+    folder = out_dir / task_id
+    return {
+        "folder": folder,
+        "mosaic": folder / MOSAIC,
+        "report": folder / REPORT,
+        "thumbnail": folder / THUMBNAIL,
+        "log": folder / LOG,
+        "recording": folder / RECORDING,
+    }
+
+
+def row_of(
+    task: VideoTask,
+    out_dir: Path,
+    report: dict[str, Any] | None,
+    status: str,
+    error: str | None = None,
+    time_s: float | None = None,
+) -> dict[str, Any]:
+    """The summary row of a video, from its report where there is one."""
+    paths = _folder_paths(out_dir, task.id)
+    summary = (report or {}).get("summary", {})
+    frames = summary.get("frames_read")
+    registered = summary.get("registered")
+    pct = round(100.0 * registered / frames, 1) if frames else None
+    seconds = time_s if time_s is not None else summary.get("wall_time_s")
+    has_mosaic = report is not None and report.get("mosaic") is not None
+    return {
+        "id": task.id,
+        "status": status,
+        "frames": frames,
+        "registered": registered,
+        "registered_pct": pct,
+        "frames_until_failure": summary.get("frames_until_failure"),
+        "segments": summary.get("segments"),
+        "fps": summary.get("fps"),
+        "time_s": None if seconds is None else round(seconds, 2),
+        "error": error,
+        "video": str(task.video),
+        "mosaic": f"{task.id}/{MOSAIC}" if has_mosaic else None,
+        "thumbnail": f"{task.id}/{THUMBNAIL}"
+        if has_mosaic and paths["thumbnail"].is_file()
+        else None,
+        "report": f"{task.id}/{REPORT}" if paths["report"].is_file() else None,
+        "log": f"{task.id}/{LOG}" if paths["log"].is_file() else None,
+        "resumed": False,
+    }
+
+
+def done_report(task: VideoTask, out_dir: Path) -> dict[str, Any] | None:
+    """The report of a video already done (complete, its mosaic there, the same input), else
+    None: what `--resume` skips."""
+    paths = _folder_paths(out_dir, task.id)
+    try:
+        report = json.loads(paths["report"].read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(report, dict) or not report.get("summary", {}).get("complete"):
+        return None
+    if not paths["mosaic"].is_file():
+        return None
+    if report.get("input", {}).get("path") != str(task.video):
+        return None
+    return report
+
+
+def process_video(
+    task: VideoTask, config: Config, out_dir: Path, rerun: str = "off"
+) -> dict[str, Any]:
+    """Build one video of the batch into OUT_DIR/<id>/ and return its summary row; every error
+    (but the interrupt, which is its own status) becomes a failed row."""
+    from glampoints.detector import WeightsError
+    from mosaic.viz import make_viewer
+
+    paths = _folder_paths(out_dir, task.id)
+    started = time.perf_counter()
+    try:
+        paths["folder"].mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return row_of(task, out_dir, None, FAILED, f"cannot create {paths['folder']}: {exc}")
+    previous = signal.getsignal(signal.SIGINT)
+    if _IN_WORKER:  # idle workers ignore Ctrl-C; a running video writes what it has
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with _video_log(paths["log"]):
+            log.info("video %s: %s", task.id, task.video)
+            try:
+                if task.error is not None:
+                    raise InputError(task.error)
+                cfg = load_config(task.config) if task.config is not None else config
+                viewer = None
+                if rerun == "save":
+
+                    def viewer(info: Any) -> Any:
+                        return make_viewer("save", paths["recording"], cfg, info)
+
+                run = run_video(
+                    task.video,
+                    cfg,
+                    Outputs(paths["mosaic"], paths["report"], paths["thumbnail"]),
+                    viewer=viewer,
+                )
+            except (MosaicError, WeightsError) as exc:
+                log.error("%s", exc)
+                report = _read_json(paths["report"]) if paths["report"].is_file() else None
+                elapsed = time.perf_counter() - started
+                return row_of(task, out_dir, report, FAILED, str(exc), elapsed)
+            except Exception as exc:
+                log.exception("internal error")
+                message = f"internal error: {type(exc).__name__}: {exc}".splitlines()[0]
+                return row_of(task, out_dir, None, FAILED, message, time.perf_counter() - started)
+            status = OK if run.complete else INTERRUPTED if run.interrupted else FAILED
+            error = run.error or ("interrupted" if run.interrupted else None)
+            log.info("video %s: %s", task.id, status)
+            return row_of(task, out_dir, run.report, status, error)
+    finally:
+        if _IN_WORKER:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+def _init_worker(threads: int) -> None:
+    """Pool worker start: its share of the cores, Ctrl-C ignored while idle."""
+    global _IN_WORKER
+    _IN_WORKER = True
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    limit_threads(threads)
+
+
+def _ray_task(
+    task: VideoTask, config: Config, out_dir: Path, rerun: str, threads: int
+) -> dict[str, Any]:
+    """One video on a Ray worker (as `process_video` in a pool worker)."""
+    global _IN_WORKER
+    _IN_WORKER = True
+    limit_threads(threads)
+    return process_video(task, config, out_dir, rerun)
+
+
+# --------------------------------------------------------------------------------------------
+# Engines: each runs tasks and calls `done(task, row)` as they finish
+# --------------------------------------------------------------------------------------------
+
+Done = Callable[[VideoTask, dict[str, Any]], None]
+Running = Callable[[int], None]
+
+
+def available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+@contextmanager
+def _thread_env(threads: int) -> Iterator[None]:
+    """The thread-pool variables for processes started meanwhile (they are read at import)."""
+    saved = {name: os.environ.get(name) for name in THREAD_ENV}
+    os.environ.update({name: str(threads) for name in THREAD_ENV})
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def run_local(
+    tasks: Iterable[VideoTask],
+    config: Config,
+    out: Path,
+    rerun: str,
+    workers: int,
+    threads: int,
+    done: Done,
+    running: Running = lambda n: None,
+    job: Callable[..., dict[str, Any]] = process_video,
+) -> None:
+    """`job(task, config, out, rerun)` (`process_video`) for every task in a pool of `workers`
+    fresh processes of `threads` threads each, one task per worker at a time. When a worker
+    process dies, the tasks that may have been running in it are tried again one at a time at
+    the end; a task whose process dies when it runs alone is failed. After Ctrl-C the running
+    videos (which write what they have) are waited for, then KeyboardInterrupt is raised."""
+    import multiprocessing
+
+    queue, suspects = deque(tasks), deque[VideoTask]()
+    context = multiprocessing.get_context("spawn")  # no fork of a process with threads
+
+    def new_pool() -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(workers, context, initializer=_init_worker, initargs=(threads,))
+
+    active: dict[Future[dict[str, Any]], VideoTask] = {}
+    alone = False  # trying suspects, one at a time
+    with _thread_env(threads):
+        pool = new_pool()
+        try:
+            while queue or suspects or active:
+                if not queue and not active:
+                    queue, suspects, alone = suspects, deque(), True
+                while queue and len(active) < (1 if alone else workers):
+                    task = queue.popleft()
+                    active[pool.submit(job, task, config, out, rerun)] = task
+                running(len(active))
+                finished, _ = wait(active, return_when=FIRST_COMPLETED)
+                broken = False
+                for future in finished:
+                    task = active.pop(future)
+                    try:
+                        done(task, future.result())
+                    except BrokenProcessPool:
+                        broken = True
+                        if alone:
+                            reason = "the process building it died (a crash, or out of memory)"
+                            done(task, row_of(task, out, None, FAILED, reason))
+                        else:
+                            suspects.append(task)
+                if broken:  # the others died with the pool
+                    suspects.extend(active.values())
+                    active.clear()
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    pool = new_pool()
+        except KeyboardInterrupt:
+            for future, task in active.items():
+                with suppress(BrokenProcessPool, TimeoutError, CancelledError):
+                    done(task, future.result(timeout=120))
+            raise
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def import_ray() -> Any:
+    """The `ray` module, or a `MosaicError` saying how to install it."""
+    try:
+        import ray
+    except ImportError:
+        raise MosaicError(RAY_HINT) from None
+    return ray
+
+
+def run_ray(
+    tasks: Iterable[VideoTask],
+    config: Config,
+    out: Path,
+    rerun: str,
+    cpus_per_video: int,
+    done: Done,
+    running: Running = lambda n: None,
+    address: str | None = None,
+) -> None:
+    """One Ray task per video (`num_cpus` each, retried on worker loss) on the cluster at
+    `address`, on the Ray this process has already started, or on a new local one. Tasks write
+    their outputs to OUT_DIR: on a cluster it must be storage every node sees at the same path
+    (as the inputs)."""
+    ray = import_ray()
+    started_here = not ray.is_initialized()
+    if started_here:
+        try:
+            ray.init(
+                address=address,
+                include_dashboard=False,
+                log_to_driver=False,
+                logging_level=logging.WARNING,
+            )
+        except (ConnectionError, ValueError, RuntimeError) as exc:
+            where = address or "a local Ray"
+            raise MosaicError(f"cannot start or reach {where}: {exc}".splitlines()[0]) from exc
+    try:
+        remote = ray.remote(num_cpus=cpus_per_video, max_retries=2)(_ray_task)
+        slots = max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_video))
+        pending = {remote.remote(task, config, out, rerun, cpus_per_video): task for task in tasks}
+        try:
+            while pending:
+                running(min(len(pending), slots))
+                ready, _ = ray.wait(list(pending), num_returns=1)
+                for ref in ready:
+                    task = pending.pop(ref)
+                    try:
+                        row = ray.get(ref)
+                    except ray.exceptions.RayError as exc:
+                        reason = f"ray: {type(exc).__name__}: {exc}".splitlines()[0]
+                        row = row_of(task, out, None, FAILED, reason)
+                    done(task, row)
+        except KeyboardInterrupt:
+            for ref in pending:
+                ray.cancel(ref)
+            raise
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+# --------------------------------------------------------------------------------------------
+# The batch
+# --------------------------------------------------------------------------------------------
+
+
+def _line(row: dict[str, Any]) -> str:
+    """The line printed when a video finishes."""
+    if row["status"] == OK:
+        return (
+            f"ok      {row['id']}: {row['frames']} frames, {row['registered_pct']} % registered, "
+            f"{row['segments']} segment(s), {row['time_s']} s"
+        )
+    return f"{row['status']:<7} {row['id']}: {row['error']}"
+
+
+def run_batch(
+    source: str | Path,
+    out_dir: str | Path,
+    config: Config,
+    *,
+    workers: int | None = None,
+    engine: str = "local",
+    ray_address: str | None = None,
+    cpus_per_video: int | None = None,
+    resume: bool = True,
+    pattern: str | None = None,
+    rerun: str = "off",
+    progress: bool = True,
+    echo: Callable[[str], None] | None = None,
+) -> BatchResult:
+    """Run every video of `source` into `out_dir` (see the module doc); the summary files are
+    written as videos finish and at the end, also after Ctrl-C (then `interrupted`)."""
+    from tqdm import tqdm
+
+    if engine not in ENGINES:
+        raise InputError(f"unknown engine {engine!r} (choices: {', '.join(ENGINES)})")
+    if rerun not in ("off", "save"):
+        raise InputError(f"--rerun for a batch is off or save, not {rerun!r}")
+    if engine == "ray":
+        import_ray()  # the install hint before anything else
+    out = Path(out_dir).expanduser()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create output folder {out}: {exc.strerror or exc}") from exc
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise OutputError(f"output folder is not writable: {out}")
+    out = out.resolve()
+    tasks = find_tasks(source, pattern, exclude=out)
+    cores = available_cores()
+    workers = workers or max(1, cores // 2)
+    if workers < 1:
+        raise InputError(f"--workers must be at least 1, got {workers}")
+    threads = cpus_per_video or max(1, cores // workers)
+    rows: dict[str, dict[str, Any]] = {}
+    todo = []
+    for task in tasks:
+        report = done_report(task, out) if resume else None
+        if report is not None:
+            rows[task.id] = {**row_of(task, out, report, OK), "resumed": True}
+        else:
+            todo.append(task)
+    echo = echo or (lambda text: tqdm.write(text, file=sys.stderr))
+    if rows:
+        echo(f"{len(rows)} of {len(tasks)} videos already done, skipped (--no-resume redoes them)")
+    meta = {
+        "input": str(source),
+        "engine": engine,
+        "workers": workers if engine == "local" else None,
+        "cpus_per_video": threads,
+        "started": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+    state = {"written": 0.0}
+
+    def write(final: bool = False) -> None:
+        if final or time.monotonic() - state["written"] >= SUMMARY_EVERY_S:
+            ordered = [rows.get(t.id) or row_of(t, out, None, NOT_RUN) for t in tasks]
+            write_summary(out, ordered, meta)
+            state["written"] = time.monotonic()
+
+    bar = tqdm(
+        total=len(todo), unit="video", desc="batch", disable=not progress, dynamic_ncols=True
+    )
+    counts = {"done": 0, "failed": 0, "running": 0}
+
+    def postfix() -> None:
+        bar.set_postfix(counts, refresh=True)
+
+    def on_running(n: int) -> None:
+        counts["running"] = n
+        postfix()
+
+    def on_done(task: VideoTask, row: dict[str, Any]) -> None:
+        rows[task.id] = row
+        counts["done" if row["status"] == OK else "failed"] += 1
+        counts["running"] = max(0, counts["running"] - 1)
+        echo(_line(row))
+        bar.set_postfix(counts, refresh=False)
+        bar.update()
+        write()
+
+    interrupted = False
+    write(final=True)
+    try:
+        if engine == "local":
+            run_local(todo, config, out, rerun, workers, threads, on_done, on_running)
+        else:
+            cpus = cpus_per_video or 1
+            run_ray(todo, config, out, rerun, cpus, on_done, on_running, ray_address)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        bar.close()
+        meta["finished"] = datetime.now(UTC).isoformat(timespec="seconds")
+        write(final=True)
+    ordered = [rows.get(t.id) or row_of(t, out, None, NOT_RUN) for t in tasks]
+    tally = {s: sum(r["status"] == s for r in ordered) for s in (OK, FAILED, INTERRUPTED, NOT_RUN)}
+    return BatchResult(ordered, interrupted, tally)
+
+
+# --------------------------------------------------------------------------------------------
+# Summary files
+# --------------------------------------------------------------------------------------------
+
+
+def write_summary(out: Path, rows: list[dict[str, Any]], meta: dict[str, Any]) -> None:
+    """summary.csv, summary.json and index.html in `out`, each written atomically."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: "" if row.get(k) is None else row[k] for k in COLUMNS})
+    _atomic_write_bytes(out / "summary.csv", buffer.getvalue().encode("utf-8"))
+    counts = {s: sum(r["status"] == s for r in rows) for s in (OK, FAILED, INTERRUPTED, NOT_RUN)}
+    write_json(out / "summary.json", {"meta": meta, "counts": counts, "videos": rows})
+    _atomic_write_bytes(out / "index.html", render_index(rows, meta, counts).encode("utf-8"))
+
+
+_STATUS_ORDER = {FAILED: 0, INTERRUPTED: 1, NOT_RUN: 2, OK: 3}
+_HTML_COLUMNS = (  # (key, header, numeric)
+    ("status", "status", False),
+    ("id", "video", False),
+    ("frames", "frames", True),
+    ("registered_pct", "registered %", True),
+    ("frames_until_failure", "until failure", True),
+    ("segments", "segments", True),
+    ("fps", "frames/s", True),
+    ("time_s", "time s", True),
+    ("error", "error", False),
+)
+_STYLE = """
+body{font-family:system-ui,sans-serif;margin:1.5em;color:#222}
+table{border-collapse:collapse}th,td{padding:4px 8px;border-bottom:1px solid #ddd;
+vertical-align:middle;text-align:left}th{cursor:pointer;background:#f4f4f4;position:sticky;top:0}
+th:hover{background:#e8e8e8}td.n{text-align:right;font-variant-numeric:tabular-nums}
+tr.failed td,tr.interrupted td{background:#fdecea}tr.not.run td{color:#888}
+img{max-width:160px;max-height:120px;display:block}.err{color:#a00;max-width:40em}
+"""
+_SCRIPT = """
+document.querySelectorAll('th').forEach(function(th, col){
+  th.addEventListener('click', function(){
+    var body = th.closest('table').tBodies[0];
+    var asc = th.dataset.dir !== 'asc';
+    th.parentNode.querySelectorAll('th').forEach(function(h){ delete h.dataset.dir; });
+    th.dataset.dir = asc ? 'asc' : 'desc';
+    var rows = Array.prototype.slice.call(body.rows);
+    rows.sort(function(a, b){
+      var x = a.cells[col].dataset.v, y = b.cells[col].dataset.v;
+      var nx = parseFloat(x), ny = parseFloat(y);
+      var c = (!isNaN(nx) && !isNaN(ny)) ? nx - ny : x.localeCompare(y);
+      return asc ? c : -c;
+    });
+    rows.forEach(function(r){ body.appendChild(r); });
+  });
+});
+"""
+
+
+def _cell(row: dict[str, Any], key: str, numeric: bool) -> str:
+    value = row.get(key)
+    if key == "status":
+        sort = str(_STATUS_ORDER.get(value, 9))
+    elif value is None or (isinstance(value, float) and math.isnan(value)):
+        sort = "" if not numeric else "-1"
+    else:
+        sort = str(value)
+    text = "" if value is None else str(value)
+    if key == "id":
+        inner = html.escape(text)
+        if row.get("report"):
+            inner = f'<a href="{quote(row["report"])}">{inner}</a>'
+        if row.get("log"):
+            inner += f' <small>(<a href="{quote(row["log"])}">log</a>)</small>'
+        body = inner
+    else:
+        body = html.escape(text)
+    klass = ' class="n"' if numeric else ' class="err"' if key == "error" else ""
+    return f'<td{klass} data-v="{html.escape(sort)}">{body}</td>'
+
+
+def render_index(rows: list[dict[str, Any]], meta: dict[str, Any], counts: dict[str, int]) -> str:
+    """The browsable summary: one self-contained page (inline style and script, no server),
+    a thumbnail per video linked to its mosaic, failed videos first, sortable by any column."""
+    ordered = sorted(
+        enumerate(rows), key=lambda item: (_STATUS_ORDER.get(item[1]["status"], 9), item[0])
+    )
+    head = "<th data-v>mosaic</th>" + "".join(
+        f"<th>{html.escape(title)}</th>" for _, title, _ in _HTML_COLUMNS
+    )
+    lines = []
+    for _, row in ordered:
+        thumb = ""
+        if row.get("thumbnail") and row.get("mosaic"):
+            thumb = (
+                f'<a href="{quote(row["mosaic"])}"><img src="{quote(row["thumbnail"])}" '
+                f'alt="{html.escape(row["id"])}" loading="lazy"></a>'
+            )
+        cells = "".join(_cell(row, key, numeric) for key, _, numeric in _HTML_COLUMNS)
+        status = html.escape(row["status"])
+        lines.append(f'<tr class="{status}"><td data-v="">{thumb}</td>{cells}</tr>')
+    tally = ", ".join(f"{n} {html.escape(s)}" for s, n in counts.items() if n)
+    when = html.escape(str(meta.get("finished") or meta.get("started") or ""))
+    title = f"mosaic batch: {html.escape(str(meta.get('input', '')))}"
+    return (
+        "<!DOCTYPE html>\n"
+        f'<html lang="en"><head><meta charset="utf-8"><title>{title}</title>'
+        f"<style>{_STYLE}</style></head><body>\n"
+        f"<h1>{title}</h1>\n<p>{len(rows)} videos: {tally}. Engine "
+        f"{html.escape(str(meta.get('engine', '')))}; {when}. Click a column to sort.</p>\n"
+        f"<table><thead><tr>{head}</tr></thead><tbody>\n"
+        + "\n".join(lines)
+        + "\n</tbody></table>\n"
+        f"<script>{_SCRIPT}</script>\n</body></html>\n"
+    )

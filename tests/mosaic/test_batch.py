@@ -1,0 +1,316 @@
+"""`mosaic batch`: a folder of short synthetic videos and a corrupt file, through the CLI (local
+process pool) and on a local Ray; discovery, manifests, resume, the summary files."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import sys
+from html.parser import HTMLParser
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mosaic.batch import (
+    FAILED,
+    OK,
+    VideoTask,
+    find_tasks,
+    read_manifest,
+    render_index,
+    row_of,
+    run_batch,
+    run_local,
+    safe_id,
+)
+from mosaic.config import load_config
+from mosaic.errors import InputError
+from mosaic.synth import SynthParams, write_synthetic_video
+from tests.conftest import SAMPLE_IMAGE
+
+runner = CliRunner()
+IDS = ["corrupt", "deep__frames", "v0", "v1"]
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory):
+    """in/: two .mp4 videos, a folder of frames two levels down, a corrupt .mp4; a SIFT config."""
+    root = tmp_path_factory.mktemp("batch")
+    videos = root / "in"
+    (videos / "deep").mkdir(parents=True)
+    for seed, out in enumerate([videos / "v0.mp4", videos / "v1.mp4", videos / "deep" / "frames"]):
+        params = SynthParams(n_frames=10, size=(200, 150), seed=seed, max_step_px=4.0)
+        write_synthetic_video(SAMPLE_IMAGE, out, params)
+    (videos / "corrupt.mp4").write_bytes(os.urandom(4000))
+    config = root / "sift.toml"
+    config.write_text('[features]\ndetector = "sift"\n')
+    return videos, config
+
+
+@pytest.fixture(scope="module")
+def batch_run(archive, tmp_path_factory):
+    """`mosaic batch` run once on the archive with 2 workers: (CLI result, OUT_DIR)."""
+    videos, config = archive
+    out = tmp_path_factory.mktemp("out") / "out"
+    args = ["batch", str(videos), "-o", str(out), "-c", str(config), "--workers", "2"]
+    return runner.invoke(app(), args), out
+
+
+def app():
+    from mosaic.cli import app
+
+    return app
+
+
+def _summary(out: Path) -> dict[str, dict]:
+    with (out / "summary.csv").open() as fh:
+        return {row["id"]: row for row in csv.DictReader(fh)}
+
+
+class _Rows(HTMLParser):
+    """The body rows of index.html: each row's cell texts, and the links and images in it."""
+
+    def __init__(self):
+        super().__init__()
+        self.rows: list[dict] = []
+        self._in_body = False
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "tbody":
+            self._in_body = True
+        elif self._in_body and tag == "tr":
+            self.rows.append({"cells": [], "links": [], "images": [], "class": attrs["class"]})
+        elif self._in_body and tag == "td":
+            self.rows[-1]["cells"].append("")
+        elif self._in_body and tag == "a":
+            self.rows[-1]["links"].append(attrs["href"])
+        elif self._in_body and tag == "img":
+            self.rows[-1]["images"].append(attrs["src"])
+
+    def handle_endtag(self, tag):
+        if tag == "tbody":
+            self._in_body = False
+
+    def handle_data(self, data):
+        if self._in_body and self.rows and self.rows[-1]["cells"]:
+            self.rows[-1]["cells"][-1] += data
+
+
+def _frames(report: dict) -> list[tuple[int, str]]:
+    return [(f["index"], f["status"]) for f in report["frames"]]
+
+
+def test_batch_builds_every_video_and_lists_the_corrupt_one_as_failed(archive, batch_run):
+    result, out = batch_run
+    assert result.exit_code == 1, result.output
+    assert "Traceback" not in result.output
+    rows = _summary(out)
+    assert sorted(rows) == IDS
+    assert rows["corrupt"]["status"] == FAILED and "corrupt.mp4" in rows["corrupt"]["error"]
+    for video_id in IDS[1:]:
+        row = rows[video_id]
+        assert row["status"] == OK and row["error"] == "", row
+        assert int(row["frames"]) == 10 and float(row["registered_pct"]) >= 70
+        assert float(row["fps"]) > 0 and float(row["time_s"]) > 0
+        folder = out / video_id
+        assert cv2.imread(str(folder / "mosaic.png")) is not None
+        assert cv2.imread(str(folder / "thumbnail.jpg")) is not None
+        report = json.loads((folder / "report.json").read_text())
+        assert report["summary"]["complete"] is True
+        assert "opened" in (folder / "log.txt").read_text()
+    assert "moov atom" in (out / "corrupt" / "log.txt").read_text()  # ffmpeg's own stderr
+    document = json.loads((out / "summary.json").read_text())
+    assert document["counts"] == {"ok": 3, "failed": 1, "interrupted": 0, "not run": 0}
+    assert [v["id"] for v in document["videos"]] == IDS  # input order (natural, recursive)
+    assert "ok      v0: 10 frames" in result.output and "failed  corrupt:" in result.output
+
+
+def test_batch_reports_match_mosaic_build(archive, batch_run, tmp_path):
+    videos, config = archive
+    _, out = batch_run
+    for video, video_id in [
+        (videos / "v0.mp4", "v0"),
+        (videos / "deep" / "frames", "deep__frames"),
+    ]:
+        target = tmp_path / f"{video_id}.png"
+        built = runner.invoke(app(), ["build", str(video), "-o", str(target), "-c", str(config)])
+        assert built.exit_code == 0, built.output
+        expected = json.loads(target.with_suffix(".json").read_text())
+        got = json.loads((out / video_id / "report.json").read_text())
+        assert _frames(got) == _frames(expected)
+        assert got["summary"]["registered"] == expected["summary"]["registered"]
+        for a, b in zip(got["frames"], expected["frames"], strict=True):
+            if b["H_to_canvas"] is not None:
+                np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-3)
+        assert got["config"] == expected["config"]
+
+
+def test_index_html_lists_every_video_failed_first(batch_run):
+    _, out = batch_run
+    page = (out / "index.html").read_text()
+    parser = _Rows()
+    parser.feed(page)
+    rows = parser.rows
+    assert len(rows) == 4
+    assert rows[0]["class"] == FAILED and "corrupt" in rows[0]["cells"][2]
+    listed = sorted(row["cells"][2].split()[0] for row in rows)
+    assert listed == IDS
+    for row in rows[1:]:
+        video_id = row["cells"][2].split()[0]
+        assert row["images"] == [f"{video_id}/thumbnail.jpg"]
+        assert f"{video_id}/mosaic.png" in row["links"]
+        assert (out / row["images"][0]).is_file()
+    assert "<script>" in page and "http" not in page  # self-contained: no external resource
+
+
+def test_rerun_skips_the_videos_done(archive, batch_run):
+    videos, config = archive
+    _, out = batch_run
+    before = {i: (out / i / "report.json").stat().st_mtime_ns for i in IDS[1:]}
+    args = ["batch", str(videos), "-o", str(out), "-c", str(config), "--workers", "1"]
+    again = runner.invoke(app(), args)
+    assert again.exit_code == 1, again.output
+    assert "3 of 4 videos already done" in again.output
+    assert {i: (out / i / "report.json").stat().st_mtime_ns for i in IDS[1:]} == before
+    rows = _summary(out)
+    assert [rows[i]["resumed"] for i in IDS] == ["False", "True", "True", "True"]
+    assert rows["v0"]["status"] == OK and rows["v0"]["frames"] == "10"
+
+
+def test_ray_engine_on_a_local_two_cpu_ray(archive, batch_run, tmp_path):
+    ray = pytest.importorskip("ray")
+    videos, config = archive
+    _, local = batch_run
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        result = run_batch(videos, tmp_path, load_config(config), engine="ray", progress=False)
+    finally:
+        ray.shutdown()
+    assert result.counts == {"ok": 3, "failed": 1, "interrupted": 0, "not run": 0}
+    assert [row["id"] for row in result.rows] == IDS
+    for video_id in IDS[1:]:
+        got = json.loads((tmp_path / video_id / "report.json").read_text())
+        expected = json.loads((local / video_id / "report.json").read_text())
+        assert _frames(got) == _frames(expected)
+        assert (tmp_path / video_id / "mosaic.png").is_file()
+    assert (tmp_path / "index.html").is_file()
+
+
+def test_ray_engine_without_ray_says_how_to_install_it(archive, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    videos, _ = archive
+    result = runner.invoke(app(), ["batch", str(videos), "-o", str(tmp_path), "--engine", "ray"])
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "pip install 'retina-mosaic[ray]'" in lines[0], result.output
+
+
+def test_find_tasks_searches_recursively_and_leaves_out_the_output(tmp_path):
+    (tmp_path / "a" / "b").mkdir(parents=True)
+    (tmp_path / "a" / "b" / "x.mp4").write_bytes(b"")
+    (tmp_path / "a" / "x.avi").write_bytes(b"")
+    (tmp_path / "a" / "x.mp4").write_bytes(b"")
+    (tmp_path / "a" / "x.gt.json").write_text("{}")
+    (tmp_path / ".hidden.mp4").write_bytes(b"")
+    frames = tmp_path / "clip 2"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "0.png"), np.zeros((4, 4, 3), np.uint8))
+    (frames / "nested").mkdir()  # not searched: the folder is a video
+    (frames / "nested" / "y.mp4").write_bytes(b"")
+    out = tmp_path / "out" / "v"
+    out.mkdir(parents=True)
+    cv2.imwrite(str(out / "mosaic.png"), np.zeros((4, 4, 3), np.uint8))
+    tasks = find_tasks(tmp_path, exclude=tmp_path / "out")
+    assert [t.id for t in tasks] == ["a__b__x", "a__x", "a__x-2", "clip_2"]
+    assert [t.video.name for t in tasks] == ["x.mp4", "x.avi", "x.mp4", "clip 2"]
+    assert [t.id for t in find_tasks(tmp_path, "*.avi", tmp_path / "out")] == ["a__x"]
+    assert [t.id for t in find_tasks(tmp_path, "a/b/*", tmp_path / "out")] == ["a__b__x"]
+    assert [t.id for t in find_tasks(frames)] == ["clip_2"]  # a frame folder is one video
+    with pytest.raises(InputError, match="no videos"):
+        find_tasks(tmp_path, "*.mkv")
+    with pytest.raises(InputError, match="not found"):
+        find_tasks(tmp_path / "missing")
+
+
+def test_manifest_columns_and_bad_rows(tmp_path):
+    manifest = tmp_path / "list.csv"
+    manifest.write_text(
+        "video,config,id\nvids/a.mp4,fast.toml,first\nb.mp4,,\n,,\nc/b.mp4,,\n",
+        encoding="utf-8",
+    )
+    tasks = read_manifest(manifest)
+    assert [t.id for t in tasks] == ["first", "b", "row4", "c__b"]
+    assert tasks[0].video == tmp_path / "vids" / "a.mp4"
+    assert tasks[0].config == tmp_path / "fast.toml" and tasks[1].config is None
+    assert tasks[2].error == "manifest row 4: no video given"
+    assert find_tasks(manifest) == tasks
+    manifest.write_text("video,id\na.mp4,x\nb.mp4,x\n")
+    with pytest.raises(InputError, match="duplicate id"):
+        read_manifest(manifest)
+    manifest.write_text("path\na.mp4\n")
+    with pytest.raises(InputError, match="'video' column"):
+        read_manifest(manifest)
+
+
+def test_manifest_per_video_config_and_missing_files_are_failed_rows(archive, tmp_path):
+    videos, config = archive
+    manifest = tmp_path / "list.csv"
+    manifest.write_text(
+        f"video,config,id\n{videos / 'v1.mp4'},{tmp_path / 'nope.toml'},badconfig\n"
+        f"{videos / 'gone.mp4'},,missing\n,,\n"
+    )
+    result = run_batch(manifest, tmp_path / "out", load_config(config), workers=1, progress=False)
+    errors = {row["id"]: row["error"] for row in result.rows}
+    assert all(row["status"] == FAILED for row in result.rows)
+    assert "nope.toml" in errors["badconfig"] and "gone.mp4" in errors["missing"]
+    assert errors["row4"] == "manifest row 4: no video given"
+
+
+def crash_on_id(task, config, out, rerun):
+    """A job for `run_local` whose worker process dies on the video named 'crash'."""
+    if task.id == "crash":
+        os._exit(3)
+    return row_of(task, out, None, OK)
+
+
+def test_a_crashing_worker_fails_only_its_own_video(tmp_path):
+    tasks = [VideoTask(name, tmp_path / name) for name in ("a", "crash", "b", "c")]
+    rows = {}
+    run_local(
+        tasks,
+        None,
+        tmp_path,
+        "off",
+        workers=2,
+        threads=1,
+        done=lambda task, row: rows.update({task.id: row}),
+        job=crash_on_id,
+    )
+    assert {k: rows[k]["status"] for k in sorted(rows)} == {
+        "a": OK,
+        "b": OK,
+        "c": OK,
+        "crash": FAILED,
+    }
+    assert "died" in rows["crash"]["error"]
+
+
+def test_ids_and_page_escape_odd_names():
+    assert safe_id("visit 1/eye<left>.mp4") == "visit_1__eye_left_.mp4"
+    assert safe_id("../..") == "__.."
+    row = {
+        "id": "<b>",
+        "status": FAILED,
+        "error": "x < y & z",
+        "report": None,
+        "log": None,
+        "thumbnail": None,
+        "mosaic": None,
+    }
+    page = render_index([row], {"input": "<in>"}, {FAILED: 1})
+    assert "<b>" not in page.replace("<body>", "") and "x &lt; y &amp; z" in page
