@@ -111,12 +111,18 @@ def _register(
 
 
 class ChainTracker:
-    """The paper's frame-to-frame chaining."""
+    """The paper's frame-to-frame chaining.
+
+    Its steps use the pure motion model (no `perspective_prior`): between consecutive frames
+    there is no perspective to find, and what the relaxed terms fit of the matches' errors
+    adds up along the chain, which no pose graph corrects (measured: realistic tuning set
+    0.46 of frames within 10 px with the pure similarity, 0.33 with the prior)."""
 
     name = "chain"
 
     def __init__(self, config: Config):
-        self._config = config
+        pure = dataclasses.replace(config.registration, perspective_prior=0.0)
+        self._config = dataclasses.replace(config, registration=pure)
         self._prev: Features | None = None
         self._prev_index: int | None = None
         self._H_prev_to_ref = np.eye(3)

@@ -162,3 +162,37 @@ def test_keyframe_is_promoted_before_registration_fails_on_a_slow_pan(fundus):
     late, _ = run(promote_min_inliers=0, promote_inlier_ratio=0.0, promote_coverage_ratio=0.0)
     assert late["summary"]["tracking"]["placed_by_previous"] >= 1
     assert min(e["n_inliers"] for e in late["frames"][1:]) < 30
+
+
+def test_chain_steps_use_the_pure_model_and_keyframe_links_the_relaxed_one():
+    """Chain steps add up with no pose graph to correct them, so they keep the pure
+    similarity; keyframe links take the perspective the matches show (perspective_prior)."""
+    from mosaic.features import Features
+    from mosaic.tracking import ChainTracker, KeyframeTracker
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform([0, 0], SIZE, (300, 2)).astype(np.float32)
+    H_true = np.array([[1.01, -0.02, 6.0], [0.02, 1.01, -4.0], [4e-5, -3e-5, 1.0]])
+    moved = cv2.perspectiveTransform(xy[None], H_true)[0].astype(np.float32)
+    descriptors = rng.normal(size=(300, 32)).astype(np.float32)
+    descriptors /= np.linalg.norm(descriptors, axis=1, keepdims=True)
+
+    def features(points):
+        n = len(points)
+        return Features(points, np.ones(n, np.float32), np.full(n, 8, np.float32), descriptors)
+
+    shape = (SIZE[1], SIZE[0])
+    steps = {}
+    for tracker in (ChainTracker(Config()), KeyframeTracker(Config())):
+        tracker.commit(0, features(moved), shape, tracker.track(0, features(moved), shape, None))
+        track = tracker.track(1, features(xy), shape, _NoTimer())
+        assert track.registration is not None and track.registration.ok
+        steps[tracker.name] = track.registration.H_cur_to_prev
+    np.testing.assert_allclose(steps["chain"][2, :2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(steps["keyframes"][2, :2], H_true[2, :2], rtol=0.2)
+
+
+class _NoTimer:
+    @staticmethod
+    def run(stage, fn, *args):
+        return fn(*args)
