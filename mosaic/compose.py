@@ -1,10 +1,26 @@
-"""Mosaic canvas: accumulates warped frames into a growing canvas and blends them.
+"""Mosaic canvas: accumulates warped frames into a growing canvas and blends them; and the
+compositing around it: photometric correction, per-pixel frame weights, the re-render pass.
 
 Frames arrive one at a time with their homography into the segment's reference frame
 (`H_frame_to_ref`); the canvas never keeps frames, only float32 accumulators
 (`sum_weighted` HxWxC and `weight` HxW) over a buffer that grows with slack as frames leave it.
 Each frame is warped only into its own bounding box, so the cost of `add` does not grow with
-the canvas.
+the canvas. A canvas of known extent (the re-render, where all poses are known) can also
+blend multiband (`mosaic.blending`); a growing one falls back to feathering.
+
+Blend modes (`[compose] blend`): `average`, `feather` (weights ramp up over `feather_px` from
+the frame's border and field-of-view edge), `last` (later frames on top), `best` (each place
+from the frame of best quality there, soft selection: smooth seams) and `multiband` (the
+`best` weights, Burt-Adelson: fine detail from the best frame, shading blended widely).
+
+Compositing (`LiveCompositor` while streaming, `render_segments` for the re-render):
+frames are divided by the video's flat-field (`[compose] flatfield`), scaled by their exposure
+gain (`exposure`: live, against the canvas under the frame; re-render, a global least-squares
+solution over all frames from a first, cheap pass over the video) and weighted by their
+quality relative to the other frames at the same place (`sharpness_weighting`: local
+sharpness, glare, distance to the border; live, relative to the recent frames). The first
+pass keeps, per segment, the best quality seen at each cell of a low-resolution canvas and the
+mean values of coarse cells per frame (for the gains): no frame is kept.
 
 Coordinates: pixel centres sit at integer coordinates (OpenCV's convention). The canvas
 (what `render`, `coverage` and `shape` describe) is the bounding box of all placed frames;
@@ -19,23 +35,54 @@ integer placements keep every pixel, the frame's outermost ring included.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
+from mosaic.blending import LaplacianBlender
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
+from mosaic.photometry import (
+    DARK,
+    SATURATED,
+    GainObservations,
+    VideoPhotometry,
+    analysis_factor,
+    channel_max,
+    frame_quality,
+    inside_share,
+    normalised_grid,
+    robust_gain,
+    shading_terms,
+    shrink,
+    small_size,
+)
 from mosaic.preprocess import scale_matrix
 
 log = logging.getLogger(__name__)
 
+BLENDS = ("feather", "average", "last", "multiband", "best")
+MULTIBAND_LEVELS = 5  # Laplacian levels: seams are smoothed over ~2^5 = 32 px
+# feather / average / multiband: weight x min(1, relative sharpness / knee)^power
+SHARPNESS_KNEE = 0.8  # frames at least this sharp (relative to the others there) count fully
+SHARPNESS_POWER = 4.0  # ... blurrier ones fall off fast: half the knee weighs 1/16
+BEST_POWER = 24.0  # best: (sharpness / best sharpness here)^this; 10 % worse weighs 0.08
+GAIN_CELLS = 24  # cells along a frame's longer side for the exposure solve
+_MIN_FACTOR = 1e-20  # floor of a weight factor: a valid pixel keeps a positive weight
+_MAX_FACTOR = 1e20  # cap of a weight factor (far under _INVALID_WEIGHT / 32^2)
+
 _MIN_SLACK_PX = 256  # buffer growth: at least this many pixels ...
 _SLACK_FRACTION = 0.25  # ... or this fraction of the needed extent, whichever is larger
 # Weight given to invalid pixels before warping: far below any bilinear mix of valid weights
-# (smallest nonzero OpenCV bilinear tap is 1/32^2), so "warped weight > 0" means all taps valid.
-_INVALID_WEIGHT = 1.0e4
+# (smallest nonzero OpenCV bilinear tap is 1/32^2; valid weights are at most _MAX_FACTOR), so
+# "warped weight > 0" means all taps valid.
+_INVALID_WEIGHT = 1.0e30
 _EDGE_EPS = 1e-6  # tolerance when rounding a warped bounding box to whole pixels
 _MIN_W = 1e-9  # homogeneous coordinate under which a corner counts as sent to infinity
 _MIN_SAMPLED_WEIGHT = 1e-6  # resampled accumulated weight above which a pixel counts as covered
@@ -47,10 +94,19 @@ def _translation(tx: float, ty: float) -> np.ndarray:
 
 
 class Canvas:
-    """Growing mosaic canvas with feather, average or last-wins blending."""
+    """Growing mosaic canvas with feather, average, last-wins, best or multiband blending.
 
-    def __init__(self, config: ComposeConfig, channels: int = 3) -> None:
-        if config.blend not in ("feather", "average", "last"):
+    `extent` (x0, y0, x1, y1 in reference pixels, half-open), when the poses of all frames
+    are known, allocates the canvas once; `multiband` needs it (else it feathers).
+    """
+
+    def __init__(
+        self,
+        config: ComposeConfig,
+        channels: int = 3,
+        extent: tuple[int, int, int, int] | None = None,
+    ) -> None:
+        if config.blend not in BLENDS:
             raise ValueError(f"unknown blend mode {config.blend!r}")
         if channels not in (1, 3):
             raise ValueError(f"channels must be 1 or 3, got {channels}")
@@ -67,8 +123,19 @@ class Canvas:
         # Per-frame weight map cache (frames of one video share shape and often the mask).
         self._cache_key: tuple[tuple[int, int], np.ndarray | None] | None = None
         self._cache_weights: np.ndarray | None = None
-        self._feathered = config.blend == "feather" and config.feather_px > 0
+        ramped = config.blend in ("feather", "best", "multiband")
+        self._feathered = ramped and config.feather_px > 0
         self._scratch_bufs: dict[str, np.ndarray] = {}
+        self._blender: LaplacianBlender | None = None
+        self._blend_origin = (0, 0)  # reference coords of the blender's pixel (0, 0)
+        if extent is not None:
+            x0, y0, x1, y1 = extent
+            self._buf_x0, self._buf_y0 = x0, y0
+            self._sum = np.zeros((y1 - y0, x1 - x0, channels), np.float32)
+            self._weight = np.zeros((y1 - y0, x1 - x0), np.float32)
+            if config.blend == "multiband":
+                self._blender = LaplacianBlender(y1 - y0, x1 - x0, channels, MULTIBAND_LEVELS)
+                self._blend_origin = (x0, y0)
 
     # ----------------------------------------------------------------------------- queries
 
@@ -103,6 +170,17 @@ class Canvas:
         out = np.zeros(sum_c.shape, np.float32)
         covered = weight_c > 0
         np.divide(sum_c, weight_c[..., None], out=out, where=covered[..., None])
+        if self._blender is not None and self._content is not None:
+            # the multiband result over the blender's extent (all of the content, unless a
+            # frame was placed outside the extent it was made for)
+            x0, y0, x1, y1 = self._content
+            ox, oy = self._blend_origin
+            ix0, iy0 = max(x0, ox), max(y0, oy)
+            ix1, iy1 = min(x1, ox + self._blender.width), min(y1, oy + self._blender.height)
+            if ix1 > ix0 and iy1 > iy0:
+                blended = self._blender.render()[iy0 - oy : iy1 - oy, ix0 - ox : ix1 - ox]
+                inner = (slice(iy0 - y0, iy1 - y0), slice(ix0 - x0, ix1 - x0))
+                np.copyto(out[inner], blended, where=covered[inner][..., None])
         np.rint(out, out=out)
         np.clip(out, 0, 255, out=out)
         return out.astype(np.uint8)
@@ -117,20 +195,21 @@ class Canvas:
         H_frame_to_ref: np.ndarray,
         frame_shape: tuple[int, ...],
         scale: float = 1.0,
-        channel: int = 1,
+        channel: int | None = 1,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The blended canvas seen from a frame placed by `H_frame_to_ref`: (values float32,
         valid bool), both of the frame's (h, w) = `frame_shape[:2]`, or of a copy resized by
         `scale` (rounded like `cv2.resize` sizes, pixel centres as `preprocess.scale_matrix`).
 
-        `channel` picks one colour channel (1: green of BGR; ignored on a 1-channel canvas).
+        `channel` picks one colour channel (1: green of BGR; ignored on a 1-channel canvas);
+        None gives all of them, values (h, w, C).
         Valid where some frame contributed: the accumulated sum and weight are both sampled
         bilinearly and divided, so a value is a weighted mean of covered pixels only and
         nothing of the empty canvas leaks in.
         """
         fh, fw = int(frame_shape[0]), int(frame_shape[1])
         h, w = max(round(fh * scale), 1), max(round(fw * scale), 1)
-        values = np.zeros((h, w), np.float32)
+        values = np.zeros((h, w) if channel is not None else (h, w, self._channels), np.float32)
         valid = np.zeros((h, w), bool)
         if self._content is None or fh == 0 or fw == 0:
             return values, valid
@@ -156,22 +235,36 @@ class Canvas:
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
         warped_sum = cv2.warpPerspective(sum_roi, M, (w, h), flags=flags)
         weight = cv2.warpPerspective(weight_roi, M, (w, h), flags=flags)
-        if warped_sum.ndim == 3:
+        if channel is not None and warped_sum.ndim == 3:
             warped_sum = warped_sum[..., min(channel, warped_sum.shape[2] - 1)]
+        elif channel is None:
+            warped_sum = warped_sum.reshape(h, w, self._channels)
         valid = weight > _MIN_SAMPLED_WEIGHT
-        np.divide(warped_sum, weight, out=values, where=valid)
+        np.divide(
+            warped_sum,
+            weight if channel is not None else weight[..., None],
+            out=values,
+            where=valid if channel is not None else valid[..., None],
+        )
         return values, valid
 
     # ----------------------------------------------------------------------------- adding
 
     def add(
-        self, image: np.ndarray, H_frame_to_ref: np.ndarray, mask: np.ndarray | None = None
+        self,
+        image: np.ndarray,
+        H_frame_to_ref: np.ndarray,
+        mask: np.ndarray | None = None,
+        weights: np.ndarray | None = None,
     ) -> None:
-        """Warp `image` into the canvas and blend it in.
+        """Warp `image` (uint8, or float32 after photometric correction) into the canvas and
+        blend it in.
 
         `mask` (uint8 HxW, nonzero = valid field of view) limits which pixels contribute;
-        None means the whole frame. Raises `CanvasLimitError` without touching the canvas
-        if the frame would push either side of the canvas beyond `max_canvas_px`.
+        None means the whole frame. `weights` (float32 HxW, > 0) multiplies the blend mode's
+        own weights (the feather ramp, or 1) per pixel; `last` ignores it. Raises
+        `CanvasLimitError` without touching the canvas if the frame would push either side of
+        the canvas beyond `max_canvas_px`.
         """
         image = self._check_image(image)
         h, w = image.shape[:2]
@@ -197,11 +290,17 @@ class Canvas:
         cn = self._channels
         M = _translation(-float(fx0), -float(fy0)) @ H
         flags, border = cv2.INTER_LINEAR, cv2.BORDER_CONSTANT
-        warped = self._scratch("warped", rh, rw, cn, np.uint8)
+        warped = self._scratch(f"warped_{image.dtype}", rh, rw, cn, image.dtype.type)
         cv2.warpPerspective(image, M, (rw, rh), dst=warped, flags=flags, borderMode=border)
         weight = self._scratch("weight", rh, rw, 1, np.float32)
+        frame_weights = self._frame_weights((h, w), mask)
+        if weights is not None and self._config.blend != "last":
+            if weights.shape != (h, w):
+                raise ValueError(f"weights shape {weights.shape} does not match frame {(h, w)}")
+            factor = np.clip(weights, _MIN_FACTOR, _MAX_FACTOR, dtype=np.float32)
+            frame_weights = np.where(frame_weights > 0, frame_weights * factor, frame_weights)
         cv2.warpPerspective(
-            self._frame_weights((h, w), mask),
+            frame_weights,
             M,
             (rw, rh),
             dst=weight,
@@ -222,10 +321,10 @@ class Canvas:
             np.copyto(warped_f, warped)
             cv2.copyTo(warped_f, valid, dst=sum_roi)
             cv2.copyTo(self._scratch("ones", rh, rw, 1, np.float32), valid, dst=weight_roi)
-        elif not self._feathered:  # average
+        elif not self._feathered and weights is None:  # average
             cv2.accumulate(warped, sum_roi, valid)
             cv2.accumulate(self._scratch("ones", rh, rw, 1, np.float32), weight_roi, valid)
-        else:  # feather
+        else:  # per-pixel weights: feather ramp and / or the given factor
             weight_c = weight
             if cn > 1:
                 weight_c = self._scratch("weight_c", rh, rw, cn, np.float32)
@@ -234,6 +333,9 @@ class Canvas:
             np.copyto(warped_f, warped)
             cv2.accumulateProduct(warped_f, weight_c, sum_roi, valid)
             cv2.accumulate(weight, weight_roi, valid)
+            if self._blender is not None:
+                ox, oy = self._blend_origin
+                self._blender.add(warped_f, weight, fx0 - ox, fy0 - oy)
         self._content = union
         self._n_frames += 1
 
@@ -241,8 +343,8 @@ class Canvas:
 
     def _check_image(self, image: np.ndarray) -> np.ndarray:
         """Validate dtype and channel count; returns HxW (1 channel) or HxWxC."""
-        if image.dtype != np.uint8:
-            raise ValueError(f"frame must be uint8, got {image.dtype}")
+        if image.dtype not in (np.uint8, np.float32):
+            raise ValueError(f"frame must be uint8 or float32, got {image.dtype}")
         c = 1 if image.ndim == 2 else image.shape[2] if image.ndim == 3 else -1
         if c != self._channels:
             raise ValueError(
@@ -393,3 +495,364 @@ class Canvas:
             slack_lo = slack_lo * room // total
             slack_hi = min(slack_hi, room - slack_lo)
         return lo - slack_lo, hi + slack_hi
+
+
+# --------------------------------------------------------------------------------- compositing
+
+
+def _weights_from_small(small: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A per-cell weight map of the analysis grid, resized to the frame's (h, w)."""
+    h, w = shape
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+class _ShadingMosaic:
+    """A low-resolution mosaic (the frames' analysis grids) of the frames' log intensity, each
+    frame's gain taken out, and of the shading terms at which they saw each place: what each
+    new frame is compared with for the flat-field estimate (`photometry.FlatFieldEstimator`)."""
+
+    def __init__(self, config: ComposeConfig) -> None:
+        average = dataclasses.replace(config, blend="average")
+        self._planes = [Canvas(average, 3) for _ in range(2)]  # log I, 4 terms, 1 unused
+        self._terms: tuple[tuple[int, ...], np.ndarray] | None = None
+
+    def observe(
+        self,
+        photometry: VideoPhotometry,
+        image: np.ndarray,
+        H_frame_to_ref: np.ndarray,
+        mask: np.ndarray,
+    ) -> None:
+        factor = analysis_factor(image.shape)
+        size = small_size(image.shape, factor)
+        small = shrink(image, size)
+        lum = _mean(small.astype(np.float32))
+        valid = inside_share(mask, size) > 0.999
+        valid &= (lum > 2 * DARK) & (channel_max(small) < SATURATED)
+        if self._terms is None or self._terms[0] != image.shape:
+            self._terms = (image.shape, shading_terms(*normalised_grid(image.shape, size)))
+        terms = self._terms[1]
+        k = factor  # reference pixels per cell of the low-resolution mosaic
+        K = np.array([[1 / k, 0, 0.5 / k - 0.5], [0, 1 / k, 0.5 / k - 0.5], [0, 0, 1.0]])
+        M = (
+            K
+            @ np.asarray(H_frame_to_ref, np.float64)
+            @ np.linalg.inv(scale_matrix(image.shape, size[::-1]))
+        )
+        log_lum = np.log(np.maximum(lum, DARK))
+        offset = 0.0
+        if self._planes[0].n_frames:
+            read = [p.content_in_frame(M, lum.shape, 1.0, channel=None) for p in self._planes]
+            ok = valid & read[0][1]
+            if ok.any():
+                mosaic = np.concatenate([values for values, _ in read], axis=2)[ok]
+                ratio = log_lum[ok] - mosaic[:, 0]
+                n = terms.shape[-1]
+                offset = photometry.observe_mosaic(
+                    image.shape, ratio, terms[ok] - mosaic[:, 1 : 1 + n]
+                )
+        zeros = np.zeros((*lum.shape, 5 - terms.shape[-1]), np.float32)
+        stack = np.concatenate([(log_lum - offset)[..., None], terms, zeros], axis=2)
+        small_mask = valid.astype(np.uint8) * 255
+        for i, plane in enumerate(self._planes):
+            plane.add(np.ascontiguousarray(stack[..., 3 * i : 3 * i + 3]), M, small_mask)
+
+
+class LiveCompositor:
+    """Puts streamed frames on a growing (live) canvas and feeds the flat-field estimate.
+
+    Each frame is compared with what the frames before it show under it: on a low-resolution
+    mosaic of log intensities, for the video's flat-field estimate (`_ShadingMosaic`), and on
+    the canvas, for its running exposure gain. With `correct` the frame is then flat-fielded,
+    gain-compensated and weighted by its own quality before it is added (`best` and
+    `multiband` feather here; the re-render, `render_segments`, does them); without, it is
+    added as decoded (a preview the re-render replaces). Its sharpness factor is relative to
+    the recent frames' (the re-render compares frames at the same places).
+    """
+
+    HISTORY = 15  # recent frames whose median sharpness is the reference
+
+    def __init__(
+        self, config: ComposeConfig, photometry: VideoPhotometry, correct: bool = True
+    ) -> None:
+        self._config = config
+        self.photometry = photometry
+        self._correct = correct and (
+            config.flatfield or config.exposure or config.sharpness_weighting
+        )
+        self._shading = _ShadingMosaic(config) if config.flatfield else None
+        self._recent: deque[float] = deque(maxlen=self.HISTORY)
+
+    def add(
+        self, canvas: Canvas, image: np.ndarray, H_frame_to_ref: np.ndarray, mask: np.ndarray
+    ) -> float | None:
+        """Observe, correct, weight and add a frame to `canvas` (raises `CanvasLimitError` like
+        `Canvas.add`, before anything is observed); returns the gain applied (None: none)."""
+        cfg = self._config
+        if not canvas.fits(H_frame_to_ref, image.shape[:2]):
+            canvas.add(image, H_frame_to_ref, mask)  # raises, naming the cap
+        if self._shading is not None:
+            self._shading.observe(self.photometry, image, H_frame_to_ref, mask)
+        if not self._correct:
+            canvas.add(image, H_frame_to_ref, mask)
+            return None
+        gain = None
+        if cfg.exposure and canvas.n_frames:
+            factor = analysis_factor(image.shape)
+            mosaic, valid = canvas.content_in_frame(
+                H_frame_to_ref, image.shape, 1.0 / factor, channel=None
+            )
+            size = mosaic.shape[1::-1]
+            valid &= inside_share(mask, size) > 0.999
+            gain = robust_gain(self.photometry.correct_small(image, size), mosaic, valid)
+        corrected = self.photometry.correct(image, gain)
+        weights = None
+        if cfg.sharpness_weighting:
+            quality = _quality(cfg, image, mask)
+            sharp = quality.sharpness()
+            median = float(np.median(sharp[quality.ramp > 0])) if quality.ramp.any() else 0.0
+            reference = float(np.median(self._recent)) if self._recent else median
+            self._recent.append(median)
+            rho = median / reference if reference > 0 else 1.0
+            small = quality.glare * np.float32(min(1.0, rho / SHARPNESS_KNEE) ** SHARPNESS_POWER)
+            weights = _weights_from_small(small, image.shape[:2])
+        canvas.add(corrected, H_frame_to_ref, mask, weights)
+        return gain
+
+
+def _mean(image: np.ndarray) -> np.ndarray:
+    """Mean over the channels (a grey image as it is)."""
+    return image if image.ndim == 2 else image.mean(axis=2)
+
+
+FrameSource = Callable[[], Iterable[tuple[int, np.ndarray, np.ndarray]]]
+BeforeAdd = Callable[[int, Canvas, np.ndarray, np.ndarray, np.ndarray], None]
+
+
+def footprint_box(H: np.ndarray, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Half-open integer box (x0, y0, x1, y1) of a (h, w) frame placed by `H`."""
+    h, w = shape
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float)
+    mapped = corners @ np.asarray(H, np.float64).T
+    xy = mapped[:, :2] / mapped[:, 2:]
+    lo = np.floor(xy.min(axis=0) + _EDGE_EPS)
+    hi = np.ceil(xy.max(axis=0) - _EDGE_EPS) + 1
+    return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+
+
+@dataclass
+class _Grid:
+    """A low-resolution grid over a canvas extent: `factor` canvas pixels per cell."""
+
+    x0: int
+    y0: int
+    factor: float
+    shape: tuple[int, int]  # (rows, cols)
+
+    @classmethod
+    def over(cls, extent: tuple[int, int, int, int], factor: float) -> _Grid:
+        x0, y0, x1, y1 = extent
+        rows, cols = math.ceil((y1 - y0) / factor), math.ceil((x1 - x0) / factor)
+        return cls(x0, y0, factor, (max(rows, 1), max(cols, 1)))
+
+    def from_small(self, H: np.ndarray, frame_shape: tuple[int, int], small: tuple[int, int]):
+        """H from the cells of a frame resized to `small` (w, h) into this grid's cells."""
+        k = self.factor
+        S = np.array([[1 / k, 0, 0.5 / k - 0.5], [0, 1 / k, 0.5 / k - 0.5], [0, 0, 1.0]])
+        to_frame = np.linalg.inv(scale_matrix(frame_shape, small[::-1]))
+        return S @ _translation(-float(self.x0), -float(self.y0)) @ H @ to_frame
+
+
+def _warp_box(src: np.ndarray, H: np.ndarray, grid_shape: tuple[int, int], border: float = 0.0):
+    """`src` warped by `H` into the part of a grid its footprint covers: (x0, y0, roi), or None
+    when it falls outside."""
+    h, w = src.shape[:2]
+    x0, y0, x1, y1 = footprint_box(H, (h, w))
+    x0, y0 = max(x0 - 1, 0), max(y0 - 1, 0)
+    x1, y1 = min(x1 + 1, grid_shape[1]), min(y1 + 1, grid_shape[0])
+    if x1 <= x0 or y1 <= y0:
+        return None
+    M = _translation(-float(x0), -float(y0)) @ H
+    roi = cv2.warpPerspective(
+        src, M, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR, borderValue=border
+    )
+    return x0, y0, roi
+
+
+@dataclass
+class _SegmentRender:
+    """What the re-render keeps per segment between and during its passes."""
+
+    poses: dict[int, np.ndarray]
+    extent: tuple[int, int, int, int]
+    quality_grid: _Grid
+    gain_grid: _Grid
+    sharpest: np.ndarray  # the most any frame's sharpness reached, per cell of quality_grid
+    sharp_sum: np.ndarray  # the frames' sharpness summed per cell of quality_grid ...
+    sharp_count: np.ndarray  # ... over this many frames
+    observations: GainObservations = field(default_factory=GainObservations)
+    gains: dict[int, float] = field(default_factory=dict)
+    canvas: Canvas | None = None
+
+
+@dataclass(frozen=True)
+class Rendered:
+    """A re-rendered segment: its canvas and the exposure gains its frames were given."""
+
+    canvas: Canvas
+    gains: dict[int, float]  # frame index -> gain (empty without exposure compensation)
+
+
+def render_segments(
+    config: ComposeConfig,
+    frames: FrameSource,
+    poses: dict[int, dict[int, np.ndarray]],
+    photometry: VideoPhotometry | None = None,
+    before_add: BeforeAdd | None = None,
+) -> dict[int, Rendered]:
+    """Render each segment's mosaic from its frames at known poses (`poses[segment][index]` =
+    H_frame_to_ref), reading the frames through `frames()` ((index, BGR uint8 image, mask))
+    once, or twice when exposure gains or per-place quality are needed (the first pass keeps
+    only per-cell statistics). `before_add(index, canvas, image, H, mask)` sees each frame
+    just before it is added (e.g. to score it against the mosaic so far)."""
+    owner = {index: seg for seg, p in poses.items() for index in p}
+    photometry = photometry if photometry is not None else VideoPhotometry(False, False)
+    need_sharpest = config.sharpness_weighting or config.blend == "best"
+    states: dict[int, _SegmentRender] = {}
+
+    def state_of(seg: int, shape: tuple[int, int]) -> _SegmentRender:
+        if seg not in states:
+            boxes = np.array([footprint_box(H, shape) for H in poses[seg].values()])
+            extent = (
+                int(boxes[:, 0].min()),
+                int(boxes[:, 1].min()),
+                int(boxes[:, 2].max()),
+                int(boxes[:, 3].max()),
+            )
+            q_grid = _Grid.over(extent, analysis_factor(shape))
+            g_grid = _Grid.over(extent, max(shape) / GAIN_CELLS)
+            zeros = np.zeros(q_grid.shape, np.float32)
+            states[seg] = _SegmentRender(
+                poses[seg], extent, q_grid, g_grid, zeros, zeros.copy(), zeros.copy()
+            )
+        return states[seg]
+
+    if config.exposure or need_sharpest:  # first pass: statistics only
+        for index, image, mask in frames():
+            if index not in owner:
+                continue
+            st = state_of(owner[index], image.shape[:2])
+            H = st.poses[index]
+            if need_sharpest:
+                q = _sharpness(config, image, mask)
+                M = st.quality_grid.from_small(H, image.shape[:2], q.shape[1::-1])
+                box = _warp_box(q, M, st.sharpest.shape)
+                seen = _warp_box((q > 0).astype(np.float32), M, st.sharpest.shape)
+                if box is not None and seen is not None:
+                    x0, y0, roi = box
+                    cells = (slice(y0, y0 + roi.shape[0]), slice(x0, x0 + roi.shape[1]))
+                    np.maximum(st.sharpest[cells], roi, out=st.sharpest[cells])
+                    st.sharp_sum[cells] += roi
+                    st.sharp_count[cells] += seen[2]
+            if config.exposure:
+                _observe_cells(st, index, image, mask, H, photometry)
+        for seg, st in states.items():
+            if config.exposure:
+                st.gains = st.observations.solve()
+                values = np.array(list(st.gains.values()))
+                if len(values):
+                    log.info(
+                        "segment %d: exposure gains %.3f-%.3f (median %.3f) over %d frames",
+                        seg, values.min(), values.max(), float(np.median(values)), len(values),
+                    )  # fmt: skip
+
+    for index, image, mask in frames():  # second pass: the mosaic
+        if index not in owner:
+            continue
+        seg = owner[index]
+        st = state_of(seg, image.shape[:2])
+        if st.canvas is None:
+            st.canvas = Canvas(config, extent=st.extent)
+        H = st.poses[index]
+        corrected = photometry.correct(image, st.gains.get(index))
+        weights = None
+        if need_sharpest:
+            q = _sharpness(config, image, mask)
+            small = q.shape[1::-1]
+            M = st.quality_grid.from_small(H, image.shape[:2], small)
+
+            def here(grid: np.ndarray, M: np.ndarray = M, small: tuple[int, int] = small):
+                flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+                return cv2.warpPerspective(grid, M, small, flags=flags)
+
+            if config.blend == "best":
+                relative = np.clip(q / np.maximum(here(st.sharpest), 1e-12), 0.0, 1.0)
+                small_weights = relative**BEST_POWER
+            else:  # one factor for the whole frame (per-pixel factors leave seams)
+                # the other frames' mean sharpness at the frame's places (leave-one-out)
+                others = here(st.sharp_count) - (q > 0)
+                mean = (here(st.sharp_sum) - q) / np.maximum(others, 1e-6)
+                share = _frame_share(q, np.where(others > 0.5, mean, 0.0))
+                small_weights = _quality(config, image, mask).glare * share
+            weights = _weights_from_small(small_weights, image.shape[:2])
+        if before_add is not None:
+            before_add(index, st.canvas, image, H, mask)
+        st.canvas.add(corrected, H, mask, weights)
+    return {
+        seg: Rendered(st.canvas, st.gains) for seg, st in states.items() if st.canvas is not None
+    }
+
+
+def _frame_share(sharpness: np.ndarray, mean: np.ndarray) -> np.float32:
+    """A frame's sharpness factor: its median sharpness relative to the mean of the other
+    frames at the same places (`mean`, 0 where none saw; over the places with detail: where
+    that mean is above its lower quartile under the frame); 1 from `SHARPNESS_KNEE` up
+    (averaging frames about as sharp lowers the noise), falling with `SHARPNESS_POWER`
+    under it. A frame no other frame overlaps keeps 1."""
+    seen = (sharpness > 0) & (mean > 0)
+    if not seen.any():
+        return np.float32(1.0)
+    detailed = seen & (mean >= np.percentile(mean[seen], 25))
+    rho = float(np.median(sharpness[detailed] / mean[detailed]))
+    return np.float32(min(1.0, rho / SHARPNESS_KNEE) ** SHARPNESS_POWER)
+
+
+def _quality(config: ComposeConfig, image: np.ndarray, mask: np.ndarray):
+    factor = analysis_factor(image.shape)
+    return frame_quality(image, mask, factor, config.feather_px, config.sharpness_weighting)
+
+
+def _sharpness(config: ComposeConfig, image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """What frames are compared by at a place, on the frame's analysis grid: local sharpness
+    x glare (`photometry.FrameQuality`); without sharpness weighting (`best`), the distance
+    to the frame's border."""
+    quality = _quality(config, image, mask)
+    return quality.sharpness() if config.sharpness_weighting else quality.ramp
+
+
+def _observe_cells(
+    st: _SegmentRender,
+    index: int,
+    image: np.ndarray,
+    mask: np.ndarray,
+    H: np.ndarray,
+    photometry: VideoPhotometry,
+) -> None:
+    """Mean values of the gain grid's cells the frame wholly covers (no saturated pixel)."""
+    grid = st.gain_grid
+    size = small_size(image.shape, grid.factor)
+    small = photometry.correct_small(image, size)
+    inside = inside_share((mask > 0) & (channel_max(image) < SATURATED), size)
+    M = grid.from_small(H, image.shape[:2], size)
+    inside_box = _warp_box(inside, M, grid.shape)
+    value_box = _warp_box(small, M, grid.shape)
+    if inside_box is None or value_box is None:
+        return
+    x0, y0, covered = inside_box
+    _, _, values = value_box
+    good = covered > 0.999
+    if not good.any():
+        return
+    rows, cols = np.nonzero(good)
+    cells = (rows + y0) * grid.shape[1] + (cols + x0)
+    st.observations.add(index, cells, values.reshape((*good.shape, -1)).mean(axis=2)[good])

@@ -86,11 +86,15 @@ class RegistrationConfig:
 
 @dataclass(frozen=True)
 class ComposeConfig:
-    """Mosaic canvas and blending."""
+    """Mosaic canvas, blending and the frames' photometric correction."""
 
-    blend: str = "feather"  # feather | average | last
+    blend: str = "multiband"  # multiband | feather | average | last | best (mosaic.compose)
     max_canvas_px: int = 8000  # cap on either side of the canvas
     feather_px: int = 40  # distance from the frame edge over which feather weights ramp up
+    exposure: bool = True  # per-frame gain compensation (live: running; re-render: global)
+    flatfield: bool = True  # divide out the vignetting profile estimated from the frames
+    sharpness_weighting: bool = True  # weight frames by local sharpness, glare, border distance
+    side_bands: bool = True  # leave frame-fixed side bands without retina out of the mosaic
     quality_threshold: float = 0.4  # a frame agreeing less with the mosaic under it (NCC of
     # band-passed green, mosaic.quality) is flagged in the report as likely misregistered
 
@@ -157,7 +161,7 @@ CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
         "usac_fast",
     ),
     ("registration", "model"): ("auto", "translation", "similarity", "affine", "homography"),
-    ("compose", "blend"): ("feather", "average", "last"),
+    ("compose", "blend"): ("feather", "average", "last", "multiband", "best"),
     ("pipeline", "on_failure"): ("stop", "skip", "restart"),
     ("pipeline", "strategy"): ("keyframes", "chain"),
 }

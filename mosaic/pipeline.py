@@ -25,12 +25,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mosaic.compose import Canvas
+from mosaic.compose import Canvas, LiveCompositor, render_segments
 from mosaic.config import Config, config_to_dict
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features, to_frame_pixels
 from mosaic.io import Frame, prefetch
 from mosaic.matching import Matches, match_descriptors
+from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import FrameGate, OverlayMask, Prepared, prepare, to_working_size
 from mosaic.quality import frame_vs_canvas
 from mosaic.registration import MODELS, Registration, estimate_motion
@@ -162,6 +163,8 @@ class MosaicBuilder:
         self._segments: list[_Segment] = []
         self._gate = FrameGate(config.gating)
         self._overlay = OverlayMask(config.preprocess)
+        compose = config.compose
+        self._photometry = VideoPhotometry(compose.side_bands, compose.flatfield)
         self._max_side = config.preprocess.max_side_px
         self._S: np.ndarray | None = None  # H_frame_to_work of the video's frames (one size)
         # The quality score is computed where it is used: live when the viewer shows it or no
@@ -170,6 +173,8 @@ class MosaicBuilder:
         k = config.keyframes
         rerenders = config.pipeline.strategy == "keyframes" and k.refine and k.rerender
         self._live_quality = not isinstance(self.viewer, NullViewer) or not rerenders
+        # the live canvas is corrected where it is seen or kept (else the re-render redoes it)
+        self._compositor = LiveCompositor(compose, self._photometry, correct=self._live_quality)
         self._started = time.perf_counter()
 
     @property
@@ -310,12 +315,16 @@ class MosaicBuilder:
         assert track.H_frame_to_ref is not None
         H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
         mask = self._frame_mask(prepared, image)
+        # the video's side bands and vignetting, from the frames placed so far
+        timer.run("compose", self._photometry.observe, image, mask)
+        mask = self._photometry.frame_mask(mask)
         quality = float("nan")
         if self._live_quality and segment.canvas.n_frames:  # against the frames already there
             canvas = segment.canvas
             quality = timer.run("compose", frame_vs_canvas, canvas, image, H_frame_to_ref, mask)
         try:
-            timer.run("compose", segment.canvas.add, image, H_frame_to_ref, mask)
+            add = self._compositor.add
+            timer.run("compose", add, segment.canvas, image, H_frame_to_ref, mask)
         except CanvasLimitError as exc:
             return str(exc)
         segment.tracker.commit(record.index, features, prepared.gray.shape, track)
@@ -358,25 +367,36 @@ class MosaicBuilder:
         segment.refined_poses = {k: self._to_frame(H) for k, H in poses.items() if H is not None}
 
     def _rerender(self, reread: Reread) -> None:
-        """Render refined segments again from the video, one more pass over its frames."""
+        """Render refined segments again from the video: one or two more passes over its
+        frames (`compose.render_segments`), with the whole video's overlay, side-band and
+        flat-field estimates."""
         todo = {s.index: s for s in self._segments if s.refined_poses and s.records}
-        owner = {r.index: s.index for s in todo.values() for r in s.records}
-        canvases = {k: Canvas(self.config.compose) for k in todo}
+        owner = {r.index for s in todo.values() for r in s.records}
+        poses = {k: dict(s.refined_poses or {}) for k, s in todo.items()}
+        self._photometry.refresh()
+        # only the field-of-view mask of `prepare` is needed here
+        mask_config = dataclasses.replace(self.config.preprocess, clahe=False, bilateral=False)
+
+        def frames() -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+            for index, image in reread():
+                if index not in owner or image is None:
+                    continue
+                # the overlay estimate of the whole video: no overlay pixels from any frame
+                work, _ = to_working_size(image, self._max_side)
+                prepared = self._overlay.apply(prepare(work, mask_config))
+                yield index, image, self._photometry.frame_mask(self._frame_mask(prepared, image))
+
         quality: dict[int, float] = {}  # of the refined poses, against the re-rendered mosaic
-        for index, image in reread():
-            if index not in owner or image is None:
-                continue
-            segment = todo[owner[index]]
-            H = segment.refined_poses[index]  # type: ignore[index]
-            # the overlay estimate of the whole video: no overlay pixels from any frame
-            work, _ = to_working_size(image, self._max_side)
-            prepared = self._overlay.apply(prepare(work, self.config.preprocess))
-            canvas, mask = canvases[segment.index], self._frame_mask(prepared, image)
+
+        def score(
+            index: int, canvas: Canvas, image: np.ndarray, H: np.ndarray, mask: np.ndarray
+        ) -> None:
             if canvas.n_frames:
                 quality[index] = frame_vs_canvas(canvas, image, H, mask)
-            canvas.add(image, H, mask)
-        for k, canvas in canvases.items():
-            segment = todo[k]
+
+        rendered = render_segments(self.config.compose, frames, poses, self._photometry, score)
+        for k, result in rendered.items():
+            segment, canvas = todo[k], result.canvas
             if canvas.n_frames != len(segment.records):
                 log.warning("segment %d not re-rendered: the input changed on re-reading", k)
                 continue

@@ -1,0 +1,145 @@
+"""Burt-Adelson multiband blending over a canvas of known size, fed one frame at a time.
+
+Each frame (already warped into its box of the canvas, with a per-pixel weight that is 0
+where it has no valid pixel) is split into a Laplacian pyramid; every level is accumulated
+with the Gaussian pyramid of the frame's weights, and the blended mosaic is the collapse of
+the per-level weighted means (Burt & Adelson, "A multiresolution spline with application to
+image mosaics", 1983). Fine detail then comes from the frames with the largest weight at that
+place (sharp seams, no ghosting), coarse shading from a wide neighbourhood (no visible steps).
+
+Memory: the per-level accumulators hold (channels + 1) floats per canvas pixel over all
+levels (4/3 of the canvas); frames are never kept. The pixels outside a frame's valid region
+are filled from the valid ones (push-pull) before its pyramid is built, so a dark field-of-view
+border never leaks into the coarse levels.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+_EPS = 1e-30  # accumulated weight under which a level's pixel counts as empty
+
+
+def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`image` (float32 HxW[xC]) with the pixels where `valid` (bool HxW) is False filled
+    smoothly from the valid ones (push-pull over a Gaussian pyramid); valid pixels unchanged."""
+    mask = valid.astype(np.float32)
+    if mask.all() or not mask.any():
+        return image
+    if image.ndim == 3 and image.shape[2] == 1:  # OpenCV drops a single channel's axis
+        return fill_invalid(image[..., 0], valid)[..., None]
+    weighted = image * (mask if image.ndim == 2 else mask[..., None])
+    levels = [(weighted, mask)]
+    while min(levels[-1][1].shape) > 1:
+        a, m = levels[-1]
+        levels.append((cv2.pyrDown(a), cv2.pyrDown(m)))
+    a, m = levels[-1]
+    m_c = m if a.ndim == 2 else m[..., None]
+    estimate = np.divide(a, m_c, out=np.zeros_like(a), where=m_c > 1e-6)
+    for a, m in reversed(levels[:-1]):
+        up = cv2.pyrUp(estimate, dstsize=(a.shape[1], a.shape[0]))
+        m_c = np.clip(m, 0.0, 1.0)
+        m_c = m_c if a.ndim == 2 else m_c[..., None]
+        # valid share m: its (pre-multiplied) mean; the rest from the coarser estimate
+        estimate = a + (1.0 - m_c) * up
+    out = np.where(valid if image.ndim == 2 else valid[..., None], image, estimate)
+    return out.astype(np.float32, copy=False)
+
+
+class LaplacianBlender:
+    """Per-level accumulators of a multiband blend over a (height, width) canvas."""
+
+    def __init__(self, height: int, width: int, channels: int, levels: int = 5) -> None:
+        if levels < 1:
+            raise ValueError(f"levels must be >= 1, got {levels}")
+        self.levels = levels
+        self.channels = channels
+        self.height, self.width = height, width
+        step = 1 << levels
+        # padded to whole multiples of 2^levels: every aligned box maps exactly onto each level
+        ph, pw = -(-height // step) * step, -(-width // step) * step
+        self._num = [np.zeros((ph >> k, pw >> k, channels), np.float32) for k in range(levels + 1)]
+        self._den = [np.zeros((ph >> k, pw >> k), np.float32) for k in range(levels + 1)]
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the accumulators."""
+        return sum(a.nbytes for a in self._num) + sum(a.nbytes for a in self._den)
+
+    def add(
+        self,
+        image: np.ndarray,
+        weight: np.ndarray,
+        x0: int,
+        y0: int,
+        trusted: float = 1e-3,
+    ) -> None:
+        """Blend in a frame warped into the canvas box with top-left (x0, y0): `image` float32
+        (h, w[, C]), `weight` float32 (h, w), 0 (or negative) where the frame is not valid.
+
+        Pixels weighing under `trusted` x the frame's largest weight (glare) keep their tiny
+        weight but not their values: those are filled from the rest of the frame before its
+        pyramid is built, so that the coarse levels, whose weights spread, carry no halo."""
+        h, w = weight.shape
+        image = image.reshape(h, w, self.channels)
+        step = 1 << self.levels
+        ph, pw = self._den[0].shape
+        # aligned box around the frame with a margin of 2 coarsest pixels: the coarse weights
+        # spread into it, and the frame's own pyramid is then exact where the canvas collapses it
+        margin = 2 * step
+        bx0 = max((x0 - margin) // step * step, 0)
+        by0 = max((y0 - margin) // step * step, 0)
+        bx1 = min(-(-(x0 + w + margin) // step) * step, pw)
+        by1 = min(-(-(y0 + h + margin) // step) * step, ph)
+        if bx1 <= bx0 or by1 <= by0:
+            return
+        box_img = np.zeros((by1 - by0, bx1 - bx0, self.channels), np.float32)
+        box_w = np.zeros((by1 - by0, bx1 - bx0), np.float32)
+        # the part of the frame's box inside the canvas
+        sx0, sy0 = max(bx0 - x0, 0), max(by0 - y0, 0)
+        sx1, sy1 = min(bx1 - x0, w), min(by1 - y0, h)
+        if sx1 <= sx0 or sy1 <= sy0:
+            return
+        dst = (slice(y0 + sy0 - by0, y0 + sy1 - by0), slice(x0 + sx0 - bx0, x0 + sx1 - bx0))
+        box_img[dst] = image[sy0:sy1, sx0:sx1]
+        box_w[dst] = np.maximum(weight[sy0:sy1, sx0:sx1], 0.0)
+        valid = box_w > trusted * float(box_w.max())
+        if not valid.any():
+            return
+        gauss = fill_invalid(box_img, valid)
+        weights = box_w
+        for k in range(self.levels + 1):
+            rows = slice(by0 >> k, by1 >> k)
+            cols = slice(bx0 >> k, bx1 >> k)
+            if k < self.levels:
+                down = cv2.pyrDown(gauss).reshape(-1, gauss.shape[1] // 2, self.channels)
+                band = gauss - cv2.pyrUp(down, dstsize=(gauss.shape[1], gauss.shape[0])).reshape(
+                    gauss.shape
+                )
+            else:
+                band = gauss
+            self._num[k][rows, cols] += band * weights[..., None]
+            self._den[k][rows, cols] += weights
+            if k < self.levels:
+                gauss = down
+                weights = cv2.pyrDown(weights)
+
+    def render(self) -> np.ndarray:
+        """The blended canvas, float32 (height, width, C); 0 where no frame had weight."""
+        out: np.ndarray | None = None
+        for k in range(self.levels, -1, -1):
+            den = self._den[k][..., None]
+            level = np.divide(self._num[k], den, out=np.zeros_like(self._num[k]), where=den > _EPS)
+            if out is None:
+                out = level
+            else:
+                h, w = level.shape[:2]
+                up = cv2.pyrUp(out, dstsize=(w, h)).reshape(h, w, self.channels)
+                out = up + level
+        assert out is not None
+        return out[: self.height, : self.width]
