@@ -68,6 +68,38 @@ def field_of_view_mask(gray: np.ndarray, threshold: int, erode_px: int) -> np.nd
     return mask
 
 
+FOV_DISC_THRESHOLD = 15  # grey level separating a fundus image's black border from the retina
+
+
+def fov_distance(source: np.ndarray) -> np.ndarray:
+    """Distance (px) of every pixel to the black border of a fundus image's field of view.
+
+    The border is found by thresholding; holes (dark lesions, vessels) are filled. The map is
+    padded by one pixel (index [y + 1, x + 1]) so the image border also counts as outside.
+    """
+    gray = source if source.ndim == 2 else cv2.cvtColor(source, cv2.COLOR_BGR2GRAY)
+    mask = (cv2.GaussianBlur(gray, (0, 0), 2.0) > FOV_DISC_THRESHOLD).astype(np.uint8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(1 - mask, connectivity=4)
+    h, w = mask.shape
+    x0, y0 = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
+    x1, y1 = x0 + stats[:, cv2.CC_STAT_WIDTH], y0 + stats[:, cv2.CC_STAT_HEIGHT]
+    is_hole = (x0 > 0) & (y0 > 0) & (x1 < w) & (y1 < h)
+    is_hole[0] = False  # label 0: the bright region itself
+    mask[is_hole[labels]] = 1
+    return cv2.distanceTransform(np.pad(mask, 1), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+
+
+def estimate_fov_disc(source: np.ndarray) -> tuple[float, float, float]:
+    """Largest disc (cx, cy, r) inside the illuminated field of view of a fundus image.
+
+    The maximum of the distance to the view's border gives the largest inscribed disc — also
+    correct for fundus images whose circular view is clipped at the top and bottom.
+    """
+    dist = fov_distance(source)
+    iy, ix = np.unravel_index(int(np.argmax(dist)), dist.shape)
+    return float(ix - 1), float(iy - 1), float(dist[iy, ix])
+
+
 def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> np.ndarray:
     """H_full_to_scaled of a resize: pixel centres map as x' = (x + 0.5) * s - 0.5."""
     sy = shape_scaled[0] / shape_full[0]
@@ -75,19 +107,82 @@ def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> 
     return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
-def to_working_size(image: np.ndarray, max_side_px: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """The frame resized so that its longer side is at most `max_side_px` (0: any size), and
-    H_frame_to_work (None when it is unchanged).
+DISC_ANALYSIS_SIDE_PX = 512  # the disc is estimated on a copy of at most this longer side
+DISC_MIN_ARC = 0.5  # share of the circle's directions the view's dark border must show
+DISC_MAX_RESIDUAL = 0.03  # median distance of the border to the fitted circle, in radii
+
+
+def retina_disc(image: np.ndarray) -> tuple[float, float, float] | None:
+    """The field-of-view disc (cx, cy, r) in pixels when the image shows a whole retina (a
+    fundus photograph: a bright disc, possibly clipped at the top and bottom, ringed by a dark
+    border), None when the view runs to the image's edges (magnified, slit-lamp, AO frames).
+
+    A circle is fitted (least squares, then again without outlying points) to the border of
+    the field of view inside the image (`fov_distance`, on a copy of at most
+    `DISC_ANALYSIS_SIDE_PX`); it is the retina when that border is seen in at least
+    `DISC_MIN_ARC` of the directions around the centre and lies on the circle.
+    """
+    h, w = image.shape[:2]
+    s = min(1.0, DISC_ANALYSIS_SIDE_PX / max(h, w))
+    small = image
+    if s < 1.0:
+        small = cv2.resize(image, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+    mask = (fov_distance(small)[1:-1, 1:-1] > 0).astype(np.uint8)
+    edge = mask - cv2.erode(mask, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    ys, xs = np.nonzero(edge)
+    if len(xs) < 20:
+        return None
+    xy = np.stack([xs, ys], 1).astype(np.float64)
+    keep = np.ones(len(xy), bool)
+    for _ in range(2):  # x^2 + y^2 = 2 cx x + 2 cy y + c, then without the far points
+        A = np.column_stack([2 * xy[keep], np.ones(int(keep.sum()))])
+        (cx, cy, c), *_ = np.linalg.lstsq(A, (xy[keep] ** 2).sum(1), rcond=None)
+        r = float(np.sqrt(max(c + cx**2 + cy**2, 0.0)))
+        residual = np.abs(np.hypot(xy[:, 0] - cx, xy[:, 1] - cy) - r)
+        keep = residual <= max(3 * np.median(residual[keep]), 1.5)
+    angle = np.arctan2(xy[keep, 1] - cy, xy[keep, 0] - cx)
+    bins = np.unique(np.floor((angle + np.pi) / (2 * np.pi) * 36).astype(int) % 36)
+    if (
+        r < 8
+        or len(bins) < DISC_MIN_ARC * 36
+        or np.median(residual[keep]) > DISC_MAX_RESIDUAL * r
+        or not mask[int(np.clip(cy, 0, mask.shape[0] - 1)), int(np.clip(cx, 0, mask.shape[1] - 1))]
+    ):
+        return None
+    return (cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5, r / s
+
+
+def working_scale(image: np.ndarray, max_side_px: int, fov_diameter_px: int = 0) -> float:
+    """Scale (<= 1) of the image registration runs on: the retina's diameter brought to
+    `fov_diameter_px` (the scale the detector was trained at) when the image shows a whole
+    retina (`retina_disc`), else the longer side brought to `max_side_px`; 0 turns either off."""
+    if fov_diameter_px > 0:
+        disc = retina_disc(image)
+        if disc is not None:
+            return min(1.0, fov_diameter_px / (2 * disc[2]))
+    h, w = image.shape[:2]
+    if max_side_px <= 0 or max(h, w) <= max_side_px:
+        return 1.0
+    return max_side_px / max(h, w)
+
+
+def to_working_size(
+    image: np.ndarray, max_side_px: int, fov_diameter_px: int = 0
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The frame resized to its working size (`working_scale`: with the default
+    `fov_diameter_px` = 0, its longer side at most `max_side_px`), and H_frame_to_work (None
+    when it is unchanged).
 
     Registration runs at a working resolution near the one the detector was trained and the
     pixel-valued settings were chosen at (descriptor size, NMS window, RANSAC threshold, ...),
     so that a camera with 2x the pixels sees the same structures at the same scale, and is not
-    4x slower.
+    4x slower. A fundus photograph is sized by its retina, not by its file: a 2912 px photograph
+    whose retina spans 2700 px and a 640 px one whose retina spans 500 px then look alike.
     """
-    h, w = image.shape[:2]
-    if max_side_px <= 0 or max(h, w) <= max_side_px:
+    scale = working_scale(image, max_side_px, fov_diameter_px)
+    if scale >= 1.0:
         return image, None
-    scale = max_side_px / max(h, w)
+    h, w = image.shape[:2]
     size = (max(round(w * scale), 1), max(round(h * scale), 1))
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
     return small, scale_matrix(image.shape, small.shape)

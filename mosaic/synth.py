@@ -42,10 +42,11 @@ import numpy as np
 
 from mosaic.errors import ConfigError, InputError, OutputError
 from mosaic.io import IMAGE_READ_SUFFIXES, natural_key, open_frames, read_image, to_bgr8, write_json
+from mosaic.preprocess import estimate_fov_disc
+from mosaic.preprocess import fov_distance as _fov_distance
 
 log = logging.getLogger(__name__)
 
-_FOV_THRESHOLD = 15  # grey level separating a fundus image's black border from the retina
 _APERTURE_LEVEL = 2.0  # grey level of the dark border outside the simulated aperture
 _VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}
 _PSNR_MAX_FRAMES = 250  # frames kept in memory to measure the compression loss of a video file
@@ -207,35 +208,6 @@ class SynthParams:
 # --------------------------------------------------------------------------------------------
 # Source field of view and trajectory
 # --------------------------------------------------------------------------------------------
-
-
-def _fov_distance(source: np.ndarray) -> np.ndarray:
-    """Distance (px) of every pixel to the black border of a fundus image's field of view.
-
-    The border is found by thresholding; holes (dark lesions, vessels) are filled. The map is
-    padded by one pixel (index [y + 1, x + 1]) so the image border also counts as outside.
-    """
-    gray = source if source.ndim == 2 else cv2.cvtColor(source, cv2.COLOR_BGR2GRAY)
-    mask = (cv2.GaussianBlur(gray, (0, 0), 2.0) > _FOV_THRESHOLD).astype(np.uint8)
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(1 - mask, connectivity=4)
-    h, w = mask.shape
-    x0, y0 = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
-    x1, y1 = x0 + stats[:, cv2.CC_STAT_WIDTH], y0 + stats[:, cv2.CC_STAT_HEIGHT]
-    is_hole = (x0 > 0) & (y0 > 0) & (x1 < w) & (y1 < h)
-    is_hole[0] = False  # label 0: the bright region itself
-    mask[is_hole[labels]] = 1
-    return cv2.distanceTransform(np.pad(mask, 1), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-
-
-def estimate_fov_disc(source: np.ndarray) -> tuple[float, float, float]:
-    """Largest disc (cx, cy, r) inside the illuminated field of view of a fundus image.
-
-    The maximum of the distance to the view's border gives the largest inscribed disc — also
-    correct for fundus images whose circular view is clipped at the top and bottom.
-    """
-    dist = _fov_distance(source)
-    iy, ix = np.unravel_index(int(np.argmax(dist)), dist.shape)
-    return float(ix - 1), float(iy - 1), float(dist[iy, ix])
 
 
 def _smooth_signal(rng: np.random.Generator, t: np.ndarray, n_terms: int = 3) -> np.ndarray:

@@ -3,7 +3,14 @@ import numpy as np
 
 from glampoints.synthetic import frame_preprocess
 from mosaic.config import PreprocessConfig
-from mosaic.preprocess import OverlayMask, field_of_view_mask, prepare, to_working_size
+from mosaic.preprocess import (
+    OverlayMask,
+    field_of_view_mask,
+    prepare,
+    retina_disc,
+    to_working_size,
+    working_scale,
+)
 
 
 def _disc_frame(h=200, w=300, radius=80):
@@ -133,3 +140,40 @@ def test_working_size_keeps_small_frames_and_maps_pixel_centres_of_large_ones():
     # the centre of pixel (0, 0) and of the last pixel map to the centres of the small ones' span
     corners = np.array([[-0.5, -0.5, 1], [999.5, 599.5, 1]]) @ H.T
     np.testing.assert_allclose(corners[:, :2], [[-0.5, -0.5], [499.5, 299.5]])
+
+
+def _fundus(h: int, w: int, cx: float, cy: float, r: float, seed: int = 0) -> np.ndarray:
+    """A textured bright disc (clipped by the image where it runs out) on black."""
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.uniform(60, 200, (h, w)).astype(np.float32), (0, 0), 3)
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = np.where(np.hypot(xx - cx, yy - cy) <= r, tex, 0).astype(np.uint8)
+    return cv2.merge([img // 2, img, img // 2])
+
+
+def test_retina_disc_recovers_the_field_of_view_disc_also_clipped_at_top_and_bottom():
+    for h, w, cx, cy, r in [(900, 1000, 480.0, 450.0, 400.0), (1100, 1400, 700.0, 550.0, 640.0)]:
+        disc = retina_disc(_fundus(h, w, cx, cy, r))
+        assert disc is not None
+        assert abs(disc[0] - cx) < 0.01 * r and abs(disc[1] - cy) < 0.01 * r
+        assert abs(disc[2] - r) < 0.01 * r
+
+
+def test_retina_disc_is_none_for_frames_bright_to_their_edges_or_showing_a_bit_of_rim():
+    rng = np.random.default_rng(0)
+    bright = cv2.GaussianBlur(rng.uniform(60, 200, (350, 660)).astype(np.uint8), (0, 0), 3)
+    assert retina_disc(bright) is None
+    rim = _fundus(350, 660, 330.0, 900.0, 800.0)  # a magnified view near the rim
+    assert retina_disc(rim) is None
+
+
+def test_working_size_brings_the_retina_to_the_trained_diameter_and_else_falls_back():
+    big = _fundus(2000, 2000, 1000.0, 1000.0, 900.0)
+    assert abs(working_scale(big, 800, 480) - 480 / 1800) < 0.01 * 480 / 1800
+    small, S = to_working_size(big, 800, 480)
+    assert abs(small.shape[0] - 2000 * 480 / 1800) <= 6 and S is not None
+    assert working_scale(big, 800, 0) == 800 / 2000  # rule off: the longer side
+    rng = np.random.default_rng(1)
+    frame = cv2.GaussianBlur(rng.uniform(60, 200, (700, 1320)).astype(np.uint8), (0, 0), 3)
+    assert working_scale(frame, 800, 480) == 800 / 1320  # no disc: max_side_px
+    assert working_scale(_fundus(400, 400, 200.0, 200.0, 190.0), 800, 480) == 1.0  # never up
