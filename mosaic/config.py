@@ -36,6 +36,9 @@ class PreprocessConfig:
     overlay_max_range: int = 2  # grey levels a pixel may vary over the video and count as static
     overlay_margin_px: int = 6  # margin kept away from a static overlay
     max_side_px: int = 800  # larger frames are registered downscaled to this longer side (0: off)
+    fov_diameter_px: int = 512  # `mosaic register`: a photograph showing the whole retina is
+    # registered with the retina's diameter at this (the detector's training images: 460-640
+    # px, median 590), instead of by max_side_px (0: off)
 
 
 @dataclass(frozen=True)
@@ -82,6 +85,8 @@ class RegistrationConfig:
     perspective_prior: float = 0.01  # with refine, relax a model below the homography into
     # one whose departure from it has this prior sd (frame half-diagonal = 1; 0.01 is ~2 px at
     # the corners): the matches set the perspective where they span the frame; 0 = pure model
+    refine_levels: int = 3  # `mosaic register`: coarse-to-fine levels from the working size up to
+    # the photographs' pixels (template matching around each inlier, robust refit; 0: off)
 
 
 @dataclass(frozen=True)
@@ -160,7 +165,14 @@ CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
         "usac_accurate",
         "usac_fast",
     ),
-    ("registration", "model"): ("auto", "translation", "similarity", "affine", "homography"),
+    ("registration", "model"): (
+        "auto",
+        "translation",
+        "similarity",
+        "affine",
+        "homography",
+        "quadratic",
+    ),
     ("compose", "blend"): ("feather", "average", "last", "multiband", "best"),
     ("pipeline", "on_failure"): ("stop", "skip", "restart"),
     ("pipeline", "strategy"): ("keyframes", "chain"),
@@ -197,7 +209,11 @@ AT_MOST_ONE = {
     ("gating", "min_fov_fraction"),
 }
 BELOW_ONE = {("registration", "confidence")}  # a probability: 1 would ask RANSAC for certainty
-AT_LEAST_IF_SET = {("preprocess", "max_side_px"): 64}  # 0 turns it off
+AT_LEAST_IF_SET = {  # 0 turns these off
+    ("preprocess", "max_side_px"): 64,
+    ("preprocess", "fov_diameter_px"): 64,
+}
+AT_MOST = {("registration", "refine_levels"): 6}
 
 
 def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
@@ -219,6 +235,9 @@ def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
         raise ConfigError(f"config {where} must be <= 1, got {value!r}")
     if (table, key) in BELOW_ONE and value >= 1:
         raise ConfigError(f"config {where} must be < 1, got {value!r}")
+    most = AT_MOST.get((table, key))
+    if most is not None and value > most:
+        raise ConfigError(f"config {where} must be <= {most}, got {value!r}")
     least = AT_LEAST_IF_SET.get((table, key))
     if least is not None and 0 < value < least:
         raise ConfigError(f"config {where} must be 0 (off) or >= {least}, got {value!r}")

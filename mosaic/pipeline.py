@@ -34,7 +34,8 @@ from mosaic.matching import Matches, match_descriptors
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import FrameGate, OverlayMask, Prepared, prepare, to_working_size
 from mosaic.quality import frame_vs_canvas
-from mosaic.registration import MODELS, Registration, estimate_motion
+from mosaic.refine import refine_pair
+from mosaic.registration import MODELS, Registration, estimate_motion, robust_fit
 from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
 
@@ -565,24 +566,63 @@ def register_pair(
     model: str | None = None,
 ) -> Registration:
     """Register one image pair: the result's `H_cur_to_prev` maps `moving` into `fixed` (full
-    size pixels; each image is registered at its working size, `[preprocess] max_side_px`);
-    `model` (default `[registration] model`) as in `estimate_motion`."""
-    fixed_work, S_fixed = to_working_size(fixed, config.preprocess.max_side_px)
-    moving_work, S_moving = to_working_size(moving, config.preprocess.max_side_px)
-    features_fixed = extractor(prepare(fixed_work, config.preprocess))
-    features_moving = extractor(prepare(moving_work, config.preprocess))
+    size pixels); `model` (default `[registration] model`) as in `estimate_motion`, or
+    "quadratic" (`Q_cur_to_prev`, 2x6; "auto" also chooses it where it beats the homography).
+
+    Each image is registered at its working size (its retina's diameter at `[preprocess]
+    fov_diameter_px` when it shows a whole one, else `max_side_px`; `working_scales`), then
+    refined through `[registration] refine_levels` levels up to the full resolution
+    (`refine.refine_pair`); a refinement that loses the matches keeps the coarse answer."""
+    model = model or config.registration.model
+    pre = config.preprocess
+    fixed_work, S_fixed = to_working_size(fixed, pre.max_side_px, pre.fov_diameter_px)
+    moving_work, S_moving = to_working_size(moving, pre.max_side_px, pre.fov_diameter_px)
+    features_fixed = extractor(prepare(fixed_work, pre))
+    features_moving = extractor(prepare(moving_work, pre))
     matches = match_descriptors(
         features_fixed.descriptors, features_moving.descriptors, config.matching
     )
+    xy_moving = features_moving.xy[matches.idx_b]
     reg = estimate_motion(
-        features_moving.xy[matches.idx_b],
+        xy_moving,
         features_fixed.xy[matches.idx_a],
         config.registration,
         moving_work.shape[:2],
         model,
     )
-    if reg.H_cur_to_prev is None or (S_fixed is None and S_moving is None):
-        return reg
     S_fixed, S_moving = (np.eye(3) if S is None else S for S in (S_fixed, S_moving))
+    scales = (float(S_moving[0, 0]), float(S_fixed[0, 0]))
+    reg = dataclasses.replace(reg, working_scales=scales)
+    if reg.H_cur_to_prev is None:
+        return reg
     H = np.linalg.inv(S_fixed) @ reg.H_cur_to_prev @ S_moving
-    return dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])
+    reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])
+    levels = config.registration.refine_levels
+    pair_model = model if model in ("quadratic", "auto") else "homography"
+    if reg.model != "homography" and model != "quadratic":
+        return reg  # a simpler model was chosen or asked for: nothing to refine it towards
+    xy_full = (xy_moving[reg.inliers] + 0.5) / S_moving[0, 0] - 0.5
+    coarse_px = config.registration.reproj_threshold_px / min(scales)  # at full resolution
+    fit, levels_done = None, 0
+    if levels > 0:
+        refined = refine_pair(
+            fixed, moving, xy_full, reg.H_cur_to_prev, min(scales), levels, pair_model, coarse_px
+        )
+        if refined is None or refined.fit.inliers.sum() < config.registration.min_inliers:
+            log.info("refinement kept too few matches: the coarse registration stands")
+        else:
+            fit, levels_done = refined.fit, refined.levels
+    if fit is None:
+        xy_target = (features_fixed.xy[matches.idx_a][reg.inliers] + 0.5) / S_fixed[0, 0] - 0.5
+        fit = robust_fit(
+            xy_full, xy_target, moving.shape[:2], reg.H_cur_to_prev, coarse_px, pair_model
+        )
+    chosen = fit.model if model in ("quadratic", "auto") else "homography"
+    return dataclasses.replace(
+        reg,
+        H_cur_to_prev=fit.H,
+        Q_cur_to_prev=fit.Q if chosen == "quadratic" else None,
+        model=chosen,
+        refined_levels=levels_done,
+        reproj_error_px=fit.rms_px,
+    )

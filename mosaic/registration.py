@@ -61,6 +61,11 @@ class Registration:
     model: str = "homography"  # the motion model of H_cur_to_prev
     coverage: float = float("nan")  # share of the current frame inside the inliers' hull
     corner_sd_px: float = float("nan")  # expected corner error of the chosen model (1 sigma)
+    # pairs (`pipeline.register_pair`): the quadratic transform (2x6, `apply_quadratic`) when
+    # the model is "quadratic", each image's working scale, and the refinement's levels
+    Q_cur_to_prev: np.ndarray | None = None
+    working_scales: tuple[float, float] | None = None  # (current, reference)
+    refined_levels: int = 0
 
     @property
     def ok(self) -> bool:
@@ -374,6 +379,8 @@ def estimate_motion(
     reference: RANSAC consensus, the model (`model`, else `[registration] model`; "auto"
     selects), refined on all matches within the threshold; the paper's failure rules."""
     model = model or config.model
+    if model == "quadratic":  # a 2x6 quadratic is for pairs (`refine.refine_pair`): its homography
+        model = "homography"
     n = len(xy_cur)
     if model in ("translation", "similarity", "affine"):
         consensus = _linear_consensus(xy_cur, xy_prev, config, model)
@@ -436,3 +443,139 @@ def inlier_coverage(xy: np.ndarray, shape: tuple[int, int]) -> float:
         return 0.0
     hull = cv2.convexHull(xy.astype(np.float32))
     return float(cv2.contourArea(hull) / (shape[0] * shape[1]))
+
+
+# -- the quadratic retinal model (pairs of photographs) ----------------------------------------
+# Can, Stewart, Roysam and Tanenbaum (PAMI 2002): x' = a1 x^2 + a2 x y + a3 y^2 + a4 x + a5 y + a6
+# and the same with b for y'; 12 parameters, the curvature of the retina seen from two poses.
+
+N_PARAMS_QUADRATIC = 12
+
+
+def quadratic_terms(xy: np.ndarray) -> np.ndarray:
+    """(N, 6) monomials x^2, x y, y^2, x, y, 1 of points (N, 2)."""
+    x, y = xy[:, 0].astype(np.float64), xy[:, 1].astype(np.float64)
+    return np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+
+
+def apply_quadratic(Q: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Points (N, 2) mapped by a 2x6 quadratic transform."""
+    return quadratic_terms(xy) @ np.asarray(Q, np.float64).T
+
+
+def apply_homography(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Points (N, 2) mapped by a 3x3 homography."""
+    p = np.column_stack([xy.astype(np.float64), np.ones(len(xy))]) @ H.T
+    return p[:, :2] / p[:, 2:]
+
+
+def _fit_quadratic_norm(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
+    """Weighted least-squares quadratic (2x6) mapping a onto b, and its weighted RSS."""
+    A = quadratic_terms(a) * np.sqrt(w)[:, None]
+    rhs = b * np.sqrt(w)[:, None]
+    Q, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    r = rhs - A @ Q
+    return Q.T, float(np.sum(r * r))
+
+
+def quadratic_to_pixels(Q_norm: np.ndarray, T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
+    """The pixel quadratic of one fitted between normalised coordinates (T_a, T_b: pixel ->
+    normalised similarities): a quadratic composed with affine maps stays quadratic, so its
+    coefficients follow exactly from a least-squares fit to it on a grid."""
+    g = np.stack(np.meshgrid(np.linspace(-1, 1, 5), np.linspace(-1, 1, 5)), -1).reshape(-1, 2)
+    px = (g - T_a[:2, 2]) / T_a[0, 0]
+    out = (apply_quadratic(Q_norm, g) - T_b[:2, 2]) / T_b[0, 0]
+    Q, *_ = np.linalg.lstsq(quadratic_terms(px), out, rcond=None)
+    return Q.T
+
+
+@dataclass(frozen=True)
+class RobustFit:
+    """A homography and a quadratic fitted robustly to matches (pixels), and the choice."""
+
+    H: np.ndarray  # 3x3, the best homography
+    Q: np.ndarray  # 2x6, the best quadratic
+    inliers: np.ndarray  # (N,) bool, of the chosen model
+    model: str  # "homography" or "quadratic"
+    rms_px: float  # RMS residual of the chosen model on its inliers
+
+
+def robust_fit(
+    xy_cur: np.ndarray,
+    xy_prev: np.ndarray,
+    shape: tuple[int, int],
+    H0: np.ndarray,
+    threshold_px: float,
+    model: str = "homography",
+    weights: np.ndarray | None = None,
+    homography_threshold_px: float | None = None,
+) -> RobustFit:
+    """Homography (Gauss-Newton from H0) and quadratic fitted by re-weighted least squares
+    (Huber at a third of `threshold_px`, matches beyond it out) in normalised coordinates.
+
+    `model`: "homography", "quadratic", or "auto": the quadratic only where it beats the
+    homography under a test that charges its 4 extra parameters (the homography's extra
+    residual, in units of the quadratic's noise inflated by how many points share a cell,
+    beyond its chi-square bound k + ADEQUATE_Z sqrt(2k)). `homography_threshold_px` (default
+    `threshold_px`) bounds the homography's residuals: on a curved retina they reach ~10 px
+    at 2912 px however precise the matches, so a tight bound would keep only part of them."""
+    T = _normaliser(shape)
+    a_all, b_all = _to_norm(T, xy_cur), _to_norm(T, xy_prev)
+    w0 = np.ones(len(a_all)) if weights is None else np.asarray(weights, np.float64)
+    M = T @ H0 @ np.linalg.inv(T)
+    M = M / M[2, 2]
+
+    def rounds(predict, fit, thr):
+        err = np.linalg.norm(predict(a_all) - b_all, axis=1)
+        state, inl = None, err < thr
+        for _ in range(4):
+            inl = err < thr
+            if inl.sum() < 8:
+                break
+            w = w0 * np.where(err <= thr / 3, 1.0, thr / 3 / np.maximum(err, 1e-12))
+            state, _ = fit(a_all[inl], b_all[inl], w[inl])
+            err = np.linalg.norm(predict(a_all, state) - b_all, axis=1)
+        inl = err < thr
+        return state, inl, err
+
+    def h_predict(q, state=None):
+        return apply_homography(M if state is None else state.M, q)
+
+    def h_fit(a, b, w):
+        f = _fit("homography", a, b, w, M)
+        if f is None:
+            raise np.linalg.LinAlgError("homography fit failed")
+        return f, f.rss
+
+    h_thr = (homography_threshold_px or threshold_px) * T[0, 0]
+    h_state, h_inl, h_err = rounds(h_predict, h_fit, h_thr)
+    M_h = h_state.M if h_state is not None else M
+    Qn0, _ = _fit_quadratic_norm(a_all[h_inl], b_all[h_inl], np.ones(int(h_inl.sum())))
+
+    def q_predict(q, state=None):
+        return apply_quadratic(Qn0 if state is None else state, q)
+
+    thr = threshold_px * T[0, 0]
+    q_state, q_inl, q_err = (None, h_inl, h_err)
+    if model in ("quadratic", "auto") and h_inl.sum() >= 2 * N_PARAMS_QUADRATIC:
+        q_state, q_inl, q_err = rounds(q_predict, _fit_quadratic_norm, thr)
+    Qn = Qn0 if q_state is None else q_state
+    H = np.linalg.inv(T) @ M_h @ T
+    H = H / H[2, 2]
+    Q = quadratic_to_pixels(Qn, T, T)
+    chosen = "homography"
+    if model == "quadratic" and q_state is not None:
+        chosen = "quadratic"
+    elif model == "auto" and q_state is not None:
+        both = h_inl & q_inl
+        n = int(both.sum())
+        if n > 2 * N_PARAMS_QUADRATIC:
+            rss_h = float(np.sum(h_err[both] ** 2))
+            rss_q = float(np.sum(q_err[both] ** 2))
+            sigma2 = max(rss_q / (2 * n - N_PARAMS_QUADRATIC), 1e-12) * _inflation(a_all[both], T)
+            extra = N_PARAMS_QUADRATIC - N_PARAMS["homography"]
+            if (rss_h - rss_q) / sigma2 > extra + ADEQUATE_Z * np.sqrt(2 * extra):
+                chosen = "quadratic"
+    inl, err = (q_inl, q_err) if chosen == "quadratic" else (h_inl, h_err)
+    rms = float(np.sqrt(np.mean(err[inl] ** 2)) / T[0, 0]) if inl.any() else float("nan")
+    return RobustFit(H, Q, inl, chosen, rms)

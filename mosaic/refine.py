@@ -1,0 +1,174 @@
+"""Coarse-to-fine refinement of a pair's registration up to the photographs' own pixels.
+
+Matches found at the working size are placed to a pixel or two there, i.e. 5-10 px on a 2912 px
+photograph. Each level doubles the resolution (geometrically, from the working scale to 1): every
+match's moving point is predicted in the fixed image by the current transform, a template around
+it, warped by the transform's local affine part so that it looks as it must in the fixed image,
+is searched by normalised cross-correlation in a small window there, and the peak (sub-pixel,
+a parabola per axis) is its new fixed position; the transform is then fitted again, robustly,
+on the re-localised matches. Cost: one `cv2.remap` per image and level for all templates and
+windows, one small `cv2.matchTemplate` per match and level.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mosaic.registration import RobustFit, apply_homography, apply_quadratic, robust_fit
+
+TEMPLATE_HALF_PX = 12  # template of 25x25 level pixels
+SEARCH_PX = 5  # searched this far around the prediction at each level
+MIN_NCC = 0.6  # a weaker correlation peak leaves the match out of the fit
+THRESHOLD_LEVEL_PX = 2.0  # robust fit: residuals beyond this (level pixels) are outliers
+MIN_POINTS = 12
+
+Mapping = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Refined:
+    """The transform after refinement, and its matches at full resolution."""
+
+    fit: RobustFit
+    xy_moving: np.ndarray  # (N, 2) full-resolution pixels
+    xy_fixed: np.ndarray  # (N, 2) re-localised positions in the fixed image
+    ncc: np.ndarray  # (N,) correlation peak at the last level
+    levels: int
+
+
+def level_scales(start_scale: float, levels: int) -> list[float]:
+    """`levels` scales from just above `start_scale` up to 1, evenly in log scale."""
+    if levels <= 0 or start_scale >= 1.0:
+        return [1.0] if levels > 0 else []
+    return [float(s) for s in np.geomspace(start_scale, 1.0, levels + 1)[1:]]
+
+
+def _to_level(xy: np.ndarray, s: float) -> np.ndarray:
+    return (xy + 0.5) * s - 0.5
+
+
+def _local_affine(predict: Mapping, xy: np.ndarray, eps: float = 1.0) -> np.ndarray:
+    """(N, 2, 2) Jacobian of `predict` at each point, by central differences."""
+    dx, dy = np.array([eps, 0.0]), np.array([0.0, eps])
+    jx = (predict(xy + dx) - predict(xy - dx)) / (2 * eps)
+    jy = (predict(xy + dy) - predict(xy - dy)) / (2 * eps)
+    return np.stack([jx, jy], axis=2)
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    g = image[:, :, 1] if image.ndim == 3 else image
+    return g.astype(np.float32)
+
+
+def relocalise(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    xy_moving: np.ndarray,
+    predict: Mapping,  # moving full-resolution pixels (N, 2) -> fixed ones (N, 2)
+    scale: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """New fixed positions (N, 2, full resolution) of moving points, and their NCC peaks, by
+    template matching at `scale` of the full-resolution grey images `fixed` and `moving`."""
+    k, r = TEMPLATE_HALF_PX, SEARCH_PX
+    if scale < 1.0:
+        size_f = (round(fixed.shape[1] * scale), round(fixed.shape[0] * scale))
+        size_m = (round(moving.shape[1] * scale), round(moving.shape[0] * scale))
+        fixed = cv2.resize(fixed, size_f, interpolation=cv2.INTER_AREA)
+        moving = cv2.resize(moving, size_m, interpolation=cv2.INTER_AREA)
+    n = len(xy_moving)
+    pred = predict(xy_moving)
+    # A fixed-image step u around the prediction comes from moving step J^-1 u (full-res units
+    # are the same at every level, up to the scale that cancels).
+    J = _local_affine(predict, xy_moving)
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    good = np.abs(det) > 1e-6
+    J_inv = np.zeros_like(J)
+    J_inv[good] = np.linalg.inv(J[good])
+    t = np.arange(-k, k + 1, dtype=np.float64)
+    u = np.stack(np.meshgrid(t, t), -1).reshape(-1, 2)  # (m, 2) template offsets, level px
+    pm = _to_level(xy_moving, scale)
+    src = pm[:, None, :] + np.einsum("nij,mj->nmi", J_inv, u)
+    side = 2 * k + 1
+    map_m = src.reshape(n * side, side, 2).astype(np.float32)
+    templates = cv2.remap(moving, map_m[..., 0], map_m[..., 1], cv2.INTER_LINEAR).reshape(
+        n, side, side
+    )
+    ts = np.arange(-k - r, k + r + 1, dtype=np.float64)
+    wv = np.stack(np.meshgrid(ts, ts), -1)
+    pf = _to_level(pred, scale)
+    wside = len(ts)
+    win = (pf[:, None, None, :] + wv[None]).reshape(n * wside, wside, 2).astype(np.float32)
+    windows = cv2.remap(fixed, win[..., 0], win[..., 1], cv2.INTER_LINEAR).reshape(n, wside, wside)
+    out = np.full((n, 2), np.nan)
+    peaks = np.zeros(n)
+    for i in np.flatnonzero(good & np.isfinite(pf).all(1)):
+        if templates[i].std() < 1.0:
+            continue
+        res = cv2.matchTemplate(windows[i], templates[i], cv2.TM_CCOEFF_NORMED)
+        iy, ix = np.unravel_index(int(np.argmax(res)), res.shape)
+        peaks[i] = res[iy, ix]
+        if not (0 < ix < res.shape[1] - 1 and 0 < iy < res.shape[0] - 1):
+            continue  # the peak is on the window's edge: not found
+        dx = _parabola(res[iy, ix - 1], res[iy, ix], res[iy, ix + 1])
+        dy = _parabola(res[iy - 1, ix], res[iy, ix], res[iy + 1, ix])
+        out[i] = pred[i] + (np.array([ix + dx, iy + dy]) - r) / scale
+    return out, peaks
+
+
+def _parabola(a: float, b: float, c: float) -> float:
+    d = a - 2 * b + c
+    return 0.0 if d >= 0 else float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+
+
+def refine_pair(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    xy_moving: np.ndarray,
+    H0: np.ndarray,
+    start_scale: float,
+    levels: int,
+    model: str = "homography",
+    homography_threshold_px: float | None = None,
+) -> Refined | None:
+    """Refine H0 (moving -> fixed, full-resolution pixels) from the coarse inliers' moving
+    points `xy_moving` through `levels` levels from `start_scale` (the working scale) up to the
+    full resolution; `model` as in `registration.robust_fit` (the quadratic predicts the next
+    level once chosen; `homography_threshold_px` bounds the homography's residuals, full
+    resolution). None when too few matches survive."""
+    g_fixed, g_moving = _grey(fixed), _grey(moving)
+    shape = moving.shape[:2]
+    fit: RobustFit | None = None
+    H = H0
+
+    def predict(q: np.ndarray) -> np.ndarray:
+        if fit is not None and fit.model == "quadratic":
+            return apply_quadratic(fit.Q, q)
+        return apply_homography(H, q)
+
+    xy_f = ncc = None
+    for scale in level_scales(start_scale, levels):
+        xy_f, ncc = relocalise(g_fixed, g_moving, xy_moving, predict, scale)
+        ok = np.isfinite(xy_f).all(1) & (ncc >= MIN_NCC)
+        if ok.sum() < MIN_POINTS:
+            return None
+        fit = robust_fit(
+            xy_moving[ok],
+            xy_f[ok],
+            shape,
+            H,
+            THRESHOLD_LEVEL_PX / scale,
+            model,
+            weights=ncc[ok],
+            homography_threshold_px=homography_threshold_px,
+        )
+        H = fit.H
+        inliers = np.zeros(len(xy_moving), bool)
+        inliers[np.flatnonzero(ok)[fit.inliers]] = True
+        fit = RobustFit(fit.H, fit.Q, inliers, fit.model, fit.rms_px)
+    if fit is None or xy_f is None or ncc is None:
+        return None
+    return Refined(fit, xy_moving, xy_f, ncc, len(level_scales(start_scale, levels)))
