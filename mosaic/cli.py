@@ -1,7 +1,10 @@
-"""`mosaic` command line: build, synth, register. The only module of `mosaic` importing typer.
+"""`mosaic` command line: build, batch, synth, register, evaluate, bench. The only module of
+`mosaic` importing typer.
 
 Every `MosaicError` (bad path, unreadable video, invalid config or weights, ...) becomes one line
-on stderr and exit code 2; Ctrl-C during `build` still writes the partial mosaic and report.
+on stderr and exit code 2. `build` and `batch` run each video through `runner.run_video`: Ctrl-C
+still writes the partial mosaic and report (exit 130), and a failure while refining or
+re-rendering writes the live mosaic (exit 1).
 """
 
 from __future__ import annotations
@@ -28,12 +31,16 @@ from mosaic.io import (
     check_output_path,
     open_frames,
     read_image,
+    write_image,
 )
 from mosaic.pipeline import register_pair
+from mosaic.refine import warp_check
 from mosaic.registration import MODELS
 from mosaic.runner import Outputs, run_video
 from mosaic.synth import SynthParams, pick_source, write_synthetic_video
 from mosaic.viz import VIEWER_MODES, RerunViewer, Viewer, make_viewer
+
+PAIR_MODELS = (*MODELS, "quadratic")  # `register`: photographs of a curved retina
 
 app = typer.Typer(
     add_completion=False,
@@ -189,13 +196,13 @@ def build(
             report_path = check_output_path(report or output.with_suffix(".json"))
             rerun, rerun_target = _viewer_args(rerun, rerun_target, viewer_flag, output)
 
-            def viewer(info: VideoInfo) -> Viewer:
+            def viewer(info: VideoInfo) -> Viewer:  # made once the input is open
                 made.append(
                     make_viewer(rerun, rerun_target, config, info, canvas_every=rerun_canvas_every)
                 )
-                if isinstance(made[0], RerunViewer) and made[0].url:
-                    typer.echo(f"rerun viewer: {made[0].url}")
-                return made[0]
+                if isinstance(made[-1], RerunViewer) and made[-1].url:
+                    typer.echo(f"rerun viewer: {made[-1].url}")
+                return made[-1]
 
             run = run_video(
                 video,
@@ -359,16 +366,28 @@ def synth(
 
 
 def _pair_result(
-    fixed: Path, moving: Path, config: Config, extractor: FeatureExtractor, model: str
+    fixed: Path,
+    moving: Path,
+    config: Config,
+    extractor: FeatureExtractor,
+    model: str,
+    warp: Path | None = None,
 ) -> dict[str, Any]:
-    registration = register_pair(read_image(fixed), read_image(moving), config, extractor, model)
-    H = registration.H_cur_to_prev
+    images = read_image(fixed), read_image(moving)
+    registration = register_pair(*images, config, extractor, model)
+    H, Q = registration.H_cur_to_prev, registration.Q_cur_to_prev
+    if warp is not None and H is not None:
+        write_image(warp, warp_check(*images, H, Q))
+    scales = registration.working_scales
     return {
         **_pair_names(fixed, moving),
         "status": "registered" if registration.ok else "failed",
         "reason": registration.reason,
         "H_moving_to_fixed": None if H is None else np.asarray(H).tolist(),
+        "Q_moving_to_fixed": None if Q is None else np.asarray(Q).tolist(),
         "model": registration.model if registration.ok else None,
+        "working_scale": None if scales is None else {"moving": scales[0], "fixed": scales[1]},
+        "refined_levels": registration.refined_levels,
         "n_matches": registration.n_matches,
         "n_inliers": registration.n_inliers,
     }
@@ -413,15 +432,23 @@ def register(
         typer.Option(
             help="Motion model: auto (the model with the least expected corner error: "
             "photographs of a curved retina from two viewpoints need more than a similarity), "
-            f"or one of {', '.join(MODELS)}."
+            f"or one of {', '.join(PAIR_MODELS)} (quadratic: the curved retina, 12 parameters)."
         ),
     ] = "auto",
+    warp: Annotated[
+        Path | None,
+        typer.Option(help="PNG: the moving image warped onto the fixed one, and a checkerboard."),
+    ] = None,
 ) -> None:
     """Register MOVING onto FIXED and print H_moving_to_fixed (full-resolution pixels)."""
     _setup_logging(False)
     with _user_errors():
-        if model not in ("auto", *MODELS):
-            raise InputError(f"--model must be auto or one of {', '.join(MODELS)}, got {model!r}")
+        if model not in ("auto", *PAIR_MODELS):
+            raise InputError(
+                f"--model must be auto or one of {', '.join(PAIR_MODELS)}, got {model!r}"
+            )
+        if warp is not None:
+            warp = check_output_path(warp)
         config = _config(config_path, detector)
         extractor = FeatureExtractor(config.features)
         if pairs is not None:
@@ -441,7 +468,7 @@ def register(
             return
         if fixed is None or moving is None:
             raise InputError("give FIXED and MOVING images, or --pairs PAIRS.csv")
-        result = _pair_result(fixed, moving, config, extractor, model)
+        result = _pair_result(fixed, moving, config, extractor, model, warp)
         if as_json:
             typer.echo(json.dumps(result, indent=2))
             return
@@ -452,6 +479,17 @@ def register(
             f"model: {result['model']}  matches: {result['n_matches']}  "
             f"inliers: {result['n_inliers']}"
         )
+        if result["working_scale"] is not None:
+            s = result["working_scale"]
+            typer.echo(
+                f"working scale: fixed {s['fixed']:.3f}, moving {s['moving']:.3f}  "
+                f"refined levels: {result['refined_levels']}"
+            )
+        if result["Q_moving_to_fixed"] is not None:
+            Q = np.array(result["Q_moving_to_fixed"])
+            typer.echo(
+                "Q_moving_to_fixed:\n" + np.array2string(Q, precision=9, suppress_small=False)
+            )
         if result["H_moving_to_fixed"] is not None:
             H = np.array(result["H_moving_to_fixed"])
             typer.echo(

@@ -172,3 +172,56 @@ def refine_pair(
     if fit is None or xy_f is None or ncc is None:
         return None
     return Refined(fit, xy_moving, xy_f, ncc, len(level_scales(start_scale, levels)))
+
+
+def fixed_to_moving_map(
+    H: np.ndarray, Q: np.ndarray | None, fixed_shape: tuple[int, int], step: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
+    """(map_x, map_y) float32 of the fixed image's shape: where each fixed pixel comes from in
+    the moving image, for `cv2.remap`. The homography inverts exactly; the quadratic by Newton
+    steps from the inverse homography on a grid every `step` px, interpolated in between."""
+    h, w = fixed_shape
+    if Q is None:
+        gx, gy = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        src = apply_homography(np.linalg.inv(H), np.column_stack([gx.ravel(), gy.ravel()]))
+        return (
+            src[:, 0].reshape(h, w).astype(np.float32),
+            src[:, 1].reshape(h, w).astype(np.float32),
+        )
+    gx, gy = np.meshgrid(np.arange(0, w + step, step, float), np.arange(0, h + step, step, float))
+    target = np.column_stack([gx.ravel(), gy.ravel()])
+    xy = apply_homography(np.linalg.inv(H), target)
+
+    def quad(q: np.ndarray) -> np.ndarray:
+        return apply_quadratic(Q, q)
+
+    for _ in range(8):
+        J = _local_affine(quad, xy)
+        r = target - quad(xy)
+        xy = xy + np.linalg.solve(J, r[:, :, None])[:, :, 0]
+    coarse_x = xy[:, 0].reshape(gx.shape).astype(np.float32)
+    coarse_y = xy[:, 1].reshape(gx.shape).astype(np.float32)
+    ux, uy = np.meshgrid(
+        np.arange(w, dtype=np.float32) / step, np.arange(h, dtype=np.float32) / step
+    )
+    return (
+        cv2.remap(coarse_x, ux, uy, cv2.INTER_LINEAR),
+        cv2.remap(coarse_y, ux, uy, cv2.INTER_LINEAR),
+    )
+
+
+def warp_check(
+    fixed: np.ndarray, moving: np.ndarray, H: np.ndarray, Q: np.ndarray | None, tile_px: int = 0
+) -> np.ndarray:
+    """The moving image warped into the fixed image's frame (`cv2.remap`), beside a
+    checkerboard of the fixed and the warped image (tiles of `tile_px`, default 1/8 of the
+    fixed image's longer side), both BGR uint8 of the fixed image's shape, side by side."""
+    map_x, map_y = fixed_to_moving_map(H, Q, fixed.shape[:2])
+    warped = cv2.remap(moving, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    fixed3 = fixed if fixed.ndim == 3 else cv2.cvtColor(fixed, cv2.COLOR_GRAY2BGR)
+    warped3 = warped if warped.ndim == 3 else cv2.cvtColor(warped, cv2.COLOR_GRAY2BGR)
+    tile = tile_px or max(max(fixed.shape[:2]) // 8, 1)
+    yy, xx = np.mgrid[0 : fixed.shape[0], 0 : fixed.shape[1]]
+    board = ((yy // tile + xx // tile) % 2).astype(bool)
+    check = np.where(board[..., None], warped3, fixed3)
+    return np.hstack([warped3, check])

@@ -189,3 +189,52 @@ def test_register_prints_the_homography(fundus, tmp_path):
     assert [line["status"] for line in lines] == ["failed", "failed", "registered"]
     assert "missing.png" in lines[0]["reason"] and "row 3" in lines[1]["reason"]
     assert corner_error(np.array(lines[2]["H_moving_to_fixed"]), H_b_to_a, (480, 320)) < 2.0
+
+
+def test_register_curved_pair_prints_the_quadratic_and_warps(tmp_path):
+    from mosaic.curved import curved_pair
+    from mosaic.registration import apply_quadratic
+
+    pair = curved_pair(cv2.imread(str(SAMPLE_IMAGE)), seed=3, size=1024)
+    fixed, moving, warp = tmp_path / "f.png", tmp_path / "m.png", tmp_path / "warp.png"
+    cv2.imwrite(str(fixed), pair.fixed)
+    cv2.imwrite(str(moving), pair.moving)
+    result = CliRunner().invoke(
+        app,
+        [
+            "register",
+            str(fixed),
+            str(moving),
+            "--json",
+            "--model",
+            "quadratic",
+            "--warp",
+            str(warp),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.output)
+    assert out["model"] == "quadratic" and np.array(out["Q_moving_to_fixed"]).shape == (2, 6)
+    assert np.array(out["H_moving_to_fixed"]).shape == (3, 3) and out["refined_levels"] == 3
+    cp = pair.control_points
+    err = np.linalg.norm(
+        apply_quadratic(np.array(out["Q_moving_to_fixed"]), cp[:, 2:]) - cp[:, :2], axis=1
+    )
+    assert err.mean() < 1.0  # px at 1024
+    assert cv2.imread(str(warp)).shape == (1024, 2048, 3)
+
+
+def test_register_pair_without_overlap_fails_with_a_clear_status(tmp_path):
+    for name, seed in (("a.png", 1), ("b.png", 2)):
+        noise = np.random.default_rng(seed).uniform(0, 255, (400, 400)).astype(np.float32)
+        img = cv2.GaussianBlur(noise, (0, 0), 3)
+        cv2.imwrite(
+            str(tmp_path / name), cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        )
+    result = CliRunner().invoke(
+        app, ["register", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--json"]
+    )
+    assert result.exit_code == 1
+    out = json.loads(result.output)
+    assert out["status"] == "failed" and out["reason"] and out["H_moving_to_fixed"] is None
+    assert out["Q_moving_to_fixed"] is None
