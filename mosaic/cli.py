@@ -471,32 +471,30 @@ def register(
         result = _pair_result(fixed, moving, config, extractor, model, warp)
         if as_json:
             typer.echo(json.dumps(result, indent=2))
-            return
-        typer.echo(
-            f"status: {result['status']}" + (f" ({result['reason']})" * bool(result["reason"]))
-        )
-        typer.echo(
-            f"model: {result['model']}  matches: {result['n_matches']}  "
-            f"inliers: {result['n_inliers']}"
-        )
-        if result["working_scale"] is not None:
-            s = result["working_scale"]
-            typer.echo(
-                f"working scale: fixed {s['fixed']:.3f}, moving {s['moving']:.3f}  "
-                f"refined levels: {result['refined_levels']}"
-            )
-        if result["Q_moving_to_fixed"] is not None:
-            Q = np.array(result["Q_moving_to_fixed"])
-            typer.echo(
-                "Q_moving_to_fixed:\n" + np.array2string(Q, precision=9, suppress_small=False)
-            )
-        if result["H_moving_to_fixed"] is not None:
-            H = np.array(result["H_moving_to_fixed"])
-            typer.echo(
-                "H_moving_to_fixed:\n" + np.array2string(H, precision=6, suppress_small=True)
-            )
+        else:
+            _print_pair(result)
     if result["status"] != "registered":
         raise typer.Exit(1)
+
+
+def _print_pair(result: dict[str, Any]) -> None:
+    """The human-readable answer of `register` for one pair."""
+    typer.echo(f"status: {result['status']}" + (f" ({result['reason']})" * bool(result["reason"])))
+    typer.echo(
+        f"model: {result['model']}  matches: {result['n_matches']}  inliers: {result['n_inliers']}"
+    )
+    if result["working_scale"] is not None:
+        s = result["working_scale"]
+        typer.echo(
+            f"working scale: fixed {s['fixed']:.3f}, moving {s['moving']:.3f}  "
+            f"refined levels: {result['refined_levels']}"
+        )
+    if result["Q_moving_to_fixed"] is not None:
+        Q = np.array(result["Q_moving_to_fixed"])
+        typer.echo("Q_moving_to_fixed:\n" + np.array2string(Q, precision=9, suppress_small=False))
+    if result["H_moving_to_fixed"] is not None:
+        H = np.array(result["H_moving_to_fixed"])
+        typer.echo("H_moving_to_fixed:\n" + np.array2string(H, precision=6, suppress_small=True))
 
 
 @app.command()
