@@ -170,6 +170,8 @@ def find_tasks(
         return [VideoTask(safe_id(src.stem if src.is_file() else src.name), src.resolve())]
     skip = Path(exclude).expanduser().resolve() if exclude is not None else None
     root = src.resolve()
+    if skip == root:
+        raise InputError(f"the output folder must not be the input folder: {src}")
     videos = list(_walk(root, pattern, skip))
     if not videos:
         what = f"matching {pattern!r}" if pattern else "(video files or folders of frames)"
@@ -246,7 +248,7 @@ def _video_log(path: Path) -> Iterator[None]:
     for lg in loggers:
         lg.addHandler(handler)
         lg.setLevel(logging.INFO)
-        lg.propagate = not _IN_WORKER
+        lg.propagate = False  # the terminal has the progress bar and a line per video
     saved_fd = None
     if _IN_WORKER:
         sys.stderr.flush()
@@ -379,7 +381,9 @@ def process_video(
                 message = f"internal error: {type(exc).__name__}: {exc}".splitlines()[0]
                 return row_of(task, out_dir, None, FAILED, message, time.perf_counter() - started)
             status = OK if run.complete else INTERRUPTED if run.interrupted else FAILED
-            error = run.error or ("interrupted" if run.interrupted else None)
+            error = run.error or (
+                "interrupted: partial mosaic and report" if run.interrupted else None
+            )
             log.info("video %s: %s", task.id, status)
             return row_of(task, out_dir, run.report, status, error)
     finally:
