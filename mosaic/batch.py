@@ -347,8 +347,10 @@ def process_video(
     started = time.perf_counter()
     try:
         paths["folder"].mkdir(parents=True, exist_ok=True)
+        _remove_outputs(paths)
     except OSError as exc:
-        return row_of(task, out_dir, None, FAILED, f"cannot create {paths['folder']}: {exc}")
+        reason = f"cannot prepare {paths['folder']}: {exc.strerror or exc}"
+        return row_of(task, out_dir, None, FAILED, reason)
     previous = signal.getsignal(signal.SIGINT)
     if _IN_WORKER:  # idle workers ignore Ctrl-C; a running video writes what it has
         signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -389,6 +391,14 @@ def process_video(
     finally:
         if _IN_WORKER:
             signal.signal(signal.SIGINT, previous)
+
+
+def _remove_outputs(paths: dict[str, Path]) -> None:
+    """An earlier run's outputs of a video run again: the folder shows this run only."""
+    stale = [paths[k] for k in ("report", "mosaic", "thumbnail", "recording")]
+    stale += paths["folder"].glob(f"{Path(MOSAIC).stem}_seg*{Path(MOSAIC).suffix}")
+    for path in stale:
+        path.unlink(missing_ok=True)
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:
@@ -620,7 +630,7 @@ def run_batch(
     out = out.resolve()
     tasks = find_tasks(source, pattern, exclude=out)
     cores = available_cores()
-    workers = workers or max(1, cores // 2)
+    workers = workers or cores  # a video keeps about one core busy (README: Many videos)
     if workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
     threads = cpus_per_video or max(1, cores // workers)

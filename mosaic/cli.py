@@ -248,7 +248,7 @@ def batch(
     ] = None,
     workers: Annotated[
         int | None,
-        typer.Option(min=1, help="local: worker processes (default: half the cores)."),
+        typer.Option(min=1, help="local: worker processes (default: one per core)."),
     ] = None,
     engine: Annotated[
         str, typer.Option(help="local (a process pool) | ray (one Ray task per video).")

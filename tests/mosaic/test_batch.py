@@ -38,14 +38,15 @@ IDS = ["corrupt", "deep__frames", "v0", "v1"]
 
 @pytest.fixture(scope="module")
 def archive(tmp_path_factory):
-    """in/: two .mp4 videos, a folder of frames two levels down, a corrupt .mp4; a SIFT config."""
+    """in/: two .mp4 videos, a folder of frames one level down, a corrupt .mp4; a SIFT config."""
     root = tmp_path_factory.mktemp("batch")
     videos = root / "in"
     (videos / "deep").mkdir(parents=True)
     for seed, out in enumerate([videos / "v0.mp4", videos / "v1.mp4", videos / "deep" / "frames"]):
         params = SynthParams(n_frames=10, size=(200, 150), seed=seed, max_step_px=4.0)
         write_synthetic_video(SAMPLE_IMAGE, out, params)
-    (videos / "corrupt.mp4").write_bytes(os.urandom(4000))
+    # a truncated copy (a broken download): no index ("moov atom"), OpenCV cannot open it
+    (videos / "corrupt.mp4").write_bytes((videos / "v0.mp4").read_bytes()[:3000])
     config = root / "sift.toml"
     config.write_text('[features]\ndetector = "sift"\n')
     return videos, config
@@ -264,9 +265,13 @@ def test_manifest_per_video_config_and_missing_files_are_failed_rows(archive, tm
         f"video,config,id\n{videos / 'v1.mp4'},{tmp_path / 'nope.toml'},badconfig\n"
         f"{videos / 'gone.mp4'},,missing\n,,\n"
     )
+    stale = tmp_path / "out" / "missing" / "mosaic.png"  # of an earlier run
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"old")
     result = run_batch(manifest, tmp_path / "out", load_config(config), workers=1, progress=False)
     errors = {row["id"]: row["error"] for row in result.rows}
     assert all(row["status"] == FAILED for row in result.rows)
+    assert not stale.exists() and all(row["mosaic"] is None for row in result.rows)
     assert "nope.toml" in errors["badconfig"] and "gone.mp4" in errors["missing"]
     assert errors["row4"] == "manifest row 4: no video given"
 
