@@ -11,7 +11,7 @@ Ctrl-C while streaming or while refining / re-rendering, or an exception in eith
 the run (`salvage`): the live canvas and the unrefined poses of the frames processed so far are
 written instead, with `summary.interrupted` (and `summary.error` after an exception) and
 `summary.complete = false`; the caller reads `VideoRun.interrupted` / `VideoRun.error` for its
-exit code.
+message and exit code (the traceback is logged at INFO level: `-v`, or a batch video's log).
 
 Also here, as the one home of "what is a video": the video suffixes and what makes a folder a
 video (a folder of frames).
@@ -46,7 +46,7 @@ from mosaic.io import (
     write_image,
     write_json,
 )
-from mosaic.pipeline import MosaicBuilder, MosaicResult, Reread
+from mosaic.pipeline import FrameRecord, MosaicBuilder, MosaicResult, Reread
 from mosaic.viz import Viewer
 
 log = logging.getLogger(__name__)
@@ -142,7 +142,7 @@ def _stream(
     frames: Iterable[Frame],
     total: int | None,
     progress: str | None,
-    on_record: Callable[[Any], None] | None,
+    on_record: Callable[[FrameRecord], None] | None,
 ) -> None:
     with ExitStack() as stack:
         bar = None
@@ -171,7 +171,7 @@ def run_video(
     extractor: FeatureExtractor | None = None,
     viewer: Viewer | Callable[[VideoInfo], Viewer] | None = None,
     progress: str | None = None,
-    on_record: Callable[[Any], None] | None = None,
+    on_record: Callable[[FrameRecord], None] | None = None,
     wrap_frames: Callable[[FrameSource], Iterable[Frame]] | None = None,
     rerender: bool = True,
     salvage: bool = True,
@@ -203,13 +203,13 @@ def run_video(
         except KeyboardInterrupt:
             if not salvage:
                 raise
-            interrupted = True
-            log.warning("interrupted: writing the partial mosaic and report")
+            interrupted = True  # the caller says so; the log keeps it
+            log.info("interrupted: writing the partial mosaic and report")
         except Exception as exc:
             if not salvage:
                 raise
             error = f"failed while registering: {_one_line(exc)}"
-            log.error("%s; writing the mosaic so far", error, exc_info=True)
+            log.info("%s; writing the mosaic so far", error, exc_info=True)
     if interrupted or error is not None:
         result = builder.finish(interrupted=True)
     else:
@@ -232,13 +232,13 @@ def _finish(
     except KeyboardInterrupt as exc:
         if not salvage:
             raise
-        log.warning("interrupted while refining / rendering: writing the live mosaic")
+        log.info("interrupted while refining / rendering: writing the live mosaic")
         return exc
     except Exception as exc:
         if not salvage:
             raise
         error = f"failed while refining / rendering: {_one_line(exc)}"
-        log.error("%s; writing the live mosaic and unrefined poses", error, exc_info=True)
+        log.info("%s; writing the live mosaic and unrefined poses", error, exc_info=True)
         return error
 
 
