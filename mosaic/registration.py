@@ -234,34 +234,17 @@ class _Fit:
 def _fit(model: str, a: np.ndarray, b: np.ndarray, w: np.ndarray, M0: np.ndarray) -> _Fit | None:
     """Weighted least-squares fit of `model` mapping points a onto b (normalised units); the
     homography by Gauss-Newton from M0."""
+    if model == "homography":
+        return _fit_homography(a, b, w, M0)
     sw = np.sqrt(w)[:, None, None]
-    if model != "homography":
-        A = _design(model, a) * sw
-        k = A.shape[2]
-        target = b - a if model == "translation" else b  # x' = x + t
-        A2, rhs = A.reshape(-1, k), (target[:, :, None] * sw).reshape(-1)
-        p, *_ = np.linalg.lstsq(A2, rhs, rcond=None)
-        JtJ = A2.T @ A2
-        M = _linear_matrix(model, p)
-        r = rhs - A2 @ p
-    else:
-        M = M0 / M0[2, 2]
-        for _ in range(5):
-            mapped, J = _homography_jacobian(M, a)
-            r = ((b - mapped)[:, :, None] * sw).reshape(-1)
-            J2 = (J * sw).reshape(-1, 8)
-            JtJ = J2.T @ J2
-            try:
-                step = np.linalg.solve(JtJ + 1e-9 * np.eye(8), J2.T @ r)
-            except np.linalg.LinAlgError:
-                return None
-            M = M + np.append(step, 0.0).reshape(3, 3)
-            if np.abs(step).max() < 1e-10:
-                break
-        mapped, J = _homography_jacobian(M, a)
-        r = ((b - mapped)[:, :, None] * sw).reshape(-1)
-        J2 = (J * sw).reshape(-1, 8)
-        JtJ = J2.T @ J2
+    A = _design(model, a) * sw
+    k = A.shape[2]
+    target = b - a if model == "translation" else b  # x' = x + t
+    A2, rhs = A.reshape(-1, k), (target[:, :, None] * sw).reshape(-1)
+    p, *_ = np.linalg.lstsq(A2, rhs, rcond=None)
+    JtJ = A2.T @ A2
+    M = _linear_matrix(model, p)
+    r = rhs - A2 @ p
     try:
         JtJ_inv = np.linalg.inv(JtJ)
     except np.linalg.LinAlgError:
@@ -271,23 +254,26 @@ def _fit(model: str, a: np.ndarray, b: np.ndarray, w: np.ndarray, M0: np.ndarray
     return _Fit(model, M, JtJ_inv, float(r @ r))
 
 
-def _fit_with_prior(
-    base: _Fit, a: np.ndarray, b: np.ndarray, w: np.ndarray, sigma2: float, prior_sd: float
+def _fit_homography(
+    a: np.ndarray,
+    b: np.ndarray,
+    w: np.ndarray,
+    M0: np.ndarray,
+    prior: tuple[np.ndarray, np.ndarray, float] | None = None,
 ) -> _Fit | None:
-    """MAP homography: weighted least squares of the transfer error plus a Gaussian prior of
-    sd `prior_sd` (normalised units) on the departure from `base`'s model; from `base`."""
-    D, d = _departure(base.model)
-    lam = sigma2 / prior_sd**2  # the prior in units of the residuals' noise
+    """Homography by Gauss-Newton from M0 on the weighted transfer error; with `prior` (D, d,
+    lam) plus lam |D p - d|^2 on its 8 free entries p (a MAP fit: lam in units of the noise)."""
+    D, d, lam = prior if prior is not None else (np.zeros((0, 8)), np.zeros(0), 0.0)
+    P = lam * D.T @ D  # the prior's information
     sw = np.sqrt(w)[:, None, None]
-    M = base.M / base.M[2, 2]
+    M = M0 / M0[2, 2]
     for _ in range(5):
         mapped, J = _homography_jacobian(M, a)
         r = ((b - mapped)[:, :, None] * sw).reshape(-1)
         J2 = (J * sw).reshape(-1, 8)
-        p = M.ravel()[:8]
-        normal = J2.T @ J2 + lam * D.T @ D
+        gradient = J2.T @ r - lam * D.T @ (D @ M.ravel()[:8] - d)
         try:
-            step = np.linalg.solve(normal, J2.T @ r - lam * D.T @ (D @ p - d))
+            step = np.linalg.solve(J2.T @ J2 + P + 1e-9 * np.eye(8), gradient)
         except np.linalg.LinAlgError:
             return None
         M = M + np.append(step, 0.0).reshape(3, 3)
@@ -297,12 +283,21 @@ def _fit_with_prior(
     r = ((b - mapped)[:, :, None] * sw).reshape(-1)
     J2 = (J * sw).reshape(-1, 8)
     try:
-        cov = np.linalg.inv(J2.T @ J2 + lam * D.T @ D)
+        cov = np.linalg.inv(J2.T @ J2 + P)
     except np.linalg.LinAlgError:
         return None
     if not np.isfinite(M).all() or not np.isfinite(cov).all():
         return None
     return _Fit("homography", M, cov, float(r @ r))
+
+
+def _fit_with_prior(
+    base: _Fit, a: np.ndarray, b: np.ndarray, w: np.ndarray, sigma2: float, prior_sd: float
+) -> _Fit | None:
+    """MAP homography: weighted least squares of the transfer error plus a Gaussian prior of
+    sd `prior_sd` (normalised units) on the departure from `base`'s model; from `base`."""
+    D, d = _departure(base.model)
+    return _fit_homography(a, b, w, base.M, (D, d, sigma2 / prior_sd**2))
 
 
 def _normaliser(shape: tuple[int, int]) -> np.ndarray:
