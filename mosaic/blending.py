@@ -33,22 +33,23 @@ def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
         return image
     if image.ndim == 3 and image.shape[2] == 1:  # OpenCV drops a single channel's axis
         return fill_invalid(image[..., 0], valid)[..., None]
-    weighted = image * (mask if image.ndim == 2 else mask[..., None])
-    levels = [(weighted, mask)]
-    while min(levels[-1][1].shape) > 1:
+
+    def spread(m: np.ndarray) -> np.ndarray:  # a mask with as many channels as the image
+        return m if image.ndim == 2 else cv2.merge([m] * image.shape[2])
+
+    levels = [(cv2.multiply(image, spread(mask)), mask)]
+    # push: pre-multiplied means, down to where every pixel has some valid support
+    while levels[-1][1].min() <= 1e-6 and min(levels[-1][1].shape) > 1:
         a, m = levels[-1]
         levels.append((cv2.pyrDown(a), cv2.pyrDown(m)))
     a, m = levels[-1]
-    m_c = m if a.ndim == 2 else m[..., None]
-    estimate = np.divide(a, m_c, out=np.zeros_like(a), where=m_c > 1e-6)
+    estimate = cv2.divide(a, spread(np.maximum(m, 1e-6)))
+    # pull: each level's valid share m from its own mean, the rest from the coarser estimate
     for a, m in reversed(levels[:-1]):
         up = cv2.pyrUp(estimate, dstsize=(a.shape[1], a.shape[0]))
-        m_c = np.clip(m, 0.0, 1.0)
-        m_c = m_c if a.ndim == 2 else m_c[..., None]
-        # valid share m: its (pre-multiplied) mean; the rest from the coarser estimate
-        estimate = a + (1.0 - m_c) * up
-    out = np.where(valid if image.ndim == 2 else valid[..., None], image, estimate)
-    return out.astype(np.float32, copy=False)
+        estimate = a + cv2.multiply(up, spread(1.0 - np.clip(m, 0.0, 1.0)))
+    np.copyto(estimate, image, where=valid if image.ndim == 2 else valid[..., None])
+    return estimate
 
 
 class LaplacianBlender:

@@ -10,24 +10,24 @@ blend multiband (`mosaic.blending`); a growing one falls back to feathering.
 
 Blend modes (`[compose] blend`): `average`, `feather` (weights ramp up over `feather_px` from
 the frame's border and field-of-view edge), `last` (later frames on top), `best` (each place
-from the frame of best quality there, soft selection: smooth seams) and `multiband` (the
-`best` weights, Burt-Adelson: fine detail from the best frame, shading blended widely).
+from its sharpest frame, a soft selection: smooth seams) and `multiband` (the feather weights,
+Burt-Adelson: detail blended where the weight is, shading over ~32 px).
 
-Compositing (`LiveCompositor` while streaming, `render_segments` for the re-render):
-frames are divided by the video's flat-field (`[compose] flatfield`), scaled by their exposure
-gain (`exposure`: live, against the canvas under the frame; re-render, a global least-squares
-solution over all frames from a first, cheap pass over the video) and weighted by their
-quality relative to the other frames at the same place (`sharpness_weighting`: local
-sharpness, glare, distance to the border; live, relative to the recent frames). The first
-pass keeps, per segment, the best quality seen at each cell of a low-resolution canvas and the
-mean values of coarse cells per frame (for the gains): no frame is kept.
+Compositing (`LiveCompositor` while streaming, `render_segments` for the re-render): frames are
+divided by the video's flat-field (`[compose] flatfield`), scaled by their exposure gain
+(`exposure`: live, against the canvas under the frame; re-render, a global least-squares
+solution over all frames from a first pass over the video) and weighted by their sharpness
+against the other frames at the same places and by glare (`sharpness_weighting`; live, against
+the recent frames). The first pass keeps, per segment, the frames' summed (and largest)
+sharpness per cell of a low-resolution canvas and the mean values of coarse cells per frame
+(for the gains): no frame is kept.
 
 Coordinates: pixel centres sit at integer coordinates (OpenCV's convention). The canvas
 (what `render`, `coverage` and `shape` describe) is the bounding box of all placed frames;
 `H_ref_to_canvas` is the translation from reference-frame pixels into it.
 
 Seams: the image is warped bilinearly, and a warped pixel counts as valid only where *every*
-source pixel its bilinear sample touches is valid (the weight map, -1e4 outside the valid
+source pixel its bilinear sample touches is valid (the weight map, -1e30 outside the valid
 region, is warped linearly with the same homography and thresholded at 0). So neither the dark
 outside of the field of view nor the zero border of the warp can leak into the mosaic, while
 integer placements keep every pixel, the frame's outermost ring included.
@@ -72,6 +72,7 @@ MULTIBAND_LEVELS = 5  # Laplacian levels: seams are smoothed over ~2^5 = 32 px
 # feather / average / multiband: weight x min(1, relative sharpness / knee)^power
 SHARPNESS_KNEE = 0.8  # frames at least this sharp (relative to the others there) count fully
 SHARPNESS_POWER = 4.0  # ... blurrier ones fall off fast: half the knee weighs 1/16
+PRECISION = True  # weights x (shading / gain)^2: the corrected frame's inverse noise variance
 BEST_POWER = 24.0  # best: (sharpness / best sharpness here)^this; 10 % worse weighs 0.08
 GAIN_CELLS = 24  # cells along a frame's longer side for the exposure solve
 _MIN_FACTOR = 1e-20  # floor of a weight factor: a valid pixel keeps a positive weight
@@ -615,6 +616,8 @@ class LiveCompositor:
             self._recent.append(median)
             rho = median / reference if reference > 0 else 1.0
             small = quality.glare * np.float32(min(1.0, rho / SHARPNESS_KNEE) ** SHARPNESS_POWER)
+            if PRECISION:
+                small = small * _precision(self.photometry, image.shape, small.shape[::-1], gain)
             weights = _weights_from_small(small, image.shape[:2])
         canvas.add(corrected, H_frame_to_ref, mask, weights)
         return gain
@@ -794,6 +797,10 @@ def render_segments(
                 mean = (here(st.sharp_sum) - q) / np.maximum(others, 1e-6)
                 share = _frame_share(q, np.where(others > 0.5, mean, 0.0))
                 small_weights = _quality(config, image, mask).glare * share
+                if PRECISION:
+                    small_weights = small_weights * _precision(
+                        photometry, image.shape, small, st.gains.get(index)
+                    )
             weights = _weights_from_small(small_weights, image.shape[:2])
         if before_add is not None:
             before_add(index, st.canvas, image, H, mask)
@@ -801,6 +808,18 @@ def render_segments(
     return {
         seg: Rendered(st.canvas, st.gains) for seg, st in states.items() if st.canvas is not None
     }
+
+
+def _precision(
+    photometry: VideoPhotometry,
+    shape: tuple[int, ...],
+    size: tuple[int, int],
+    gain: float | None,
+) -> np.ndarray:
+    """How much the correction amplified a frame's noise, inverted: (shading / gain)^2 on its
+    analysis grid of (w, h) = `size` (a vignetted corner, a dark frame brightened weigh less)."""
+    shading = np.asarray(photometry.shading(shape, size), np.float32)
+    return (shading / (1.0 if gain is None else gain)) ** 2 * np.ones(size[::-1], np.float32)
 
 
 def _frame_share(sharpness: np.ndarray, mean: np.ndarray) -> np.float32:

@@ -515,11 +515,12 @@ class GainObservations:
         return sum(len(c) for c in self._cells)
 
     def add(self, frame: int, cells: np.ndarray, values: np.ndarray) -> None:
-        """Cells (int64 ids, unique per segment) and their mean values (n,) in one frame."""
+        """Cells (ids unique per segment, under 2^31) and their mean values (n,) in one frame:
+        12 bytes a cell kept."""
         ok = values > DARK
         if ok.any():
-            self._frames.append(np.full(int(ok.sum()), frame, np.int64))
-            self._cells.append(cells[ok].astype(np.int64))
+            self._frames.append(np.full(int(ok.sum()), frame, np.int32))
+            self._cells.append(cells[ok].astype(np.int32))
             self._values.append(np.log(values[ok]).astype(np.float32))
 
     def solve(self, prior_sigma: float = 0.2, rounds: int = 4) -> dict[int, float]:
