@@ -342,3 +342,21 @@ def test_content_in_frame_lets_nothing_of_the_empty_canvas_in() -> None:
     np.testing.assert_allclose(values[valid], 200.0, atol=1e-3)
     assert (values[~valid] == 0).all()
     assert not canvas.content_in_frame(translation(500, 0), (50, 60))[1].any()
+
+
+@pytest.mark.parametrize("blend", ["average", "feather", "multiband", "best"])
+def test_weight_factors_and_float_frames(blend: str) -> None:
+    # two flat frames on top of each other, the second weighing 3x: the mean leans to it
+    canvas = Canvas(ComposeConfig(blend=blend), extent=(0, 0, 80, 60))
+    canvas.add(
+        np.full((60, 80, 3), 100.0, np.float32), np.eye(3), None, np.ones((60, 80), np.float32)
+    )
+    canvas.add(
+        np.full((60, 80, 3), 140.0, np.float32), np.eye(3), None, np.full((60, 80), 3, np.float32)
+    )
+    out = canvas.render()
+    assert out.shape == (60, 80, 3)
+    np.testing.assert_allclose(out[20:40, 30:50], 130, atol=1)
+    values, valid = canvas.content_in_frame(np.eye(3), (60, 80, 3), 0.5, channel=None)
+    assert values.shape == (30, 40, 3) and valid[5:25, 5:35].all()
+    np.testing.assert_allclose(values[10:20, 15:25], 130, atol=1)
