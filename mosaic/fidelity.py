@@ -36,6 +36,7 @@ from scipy.optimize import least_squares
 from mosaic.compose import Canvas
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
+from mosaic.registration import apply_homography as transform
 
 log = logging.getLogger(__name__)
 
@@ -148,12 +149,6 @@ def local_ncc(
 # --------------------------------------------------------------------------------------------
 
 
-def transform(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Points (N, 2) mapped by a 3x3 homography."""
-    mapped = np.asarray(xy, np.float64) @ H[:, :2].T + H[:, 2]
-    return mapped[:, :2] / mapped[:, 2:]
-
-
 def frame_grid(frame_size: tuple[int, int], n: int = GRID_POINTS) -> np.ndarray:
     """An n x n grid of points (N, 2) spanning a frame of (width, height), corners included."""
     w, h = frame_size
@@ -169,22 +164,12 @@ def _normaliser(xy: np.ndarray) -> np.ndarray:
     return np.array([[s, 0.0, -s * centre[0]], [0.0, s, -s * centre[1]], [0.0, 0.0, 1.0]])
 
 
-def _dlt(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Homography a -> b minimising the algebraic error (points already normalised)."""
-    x, y, u, v = a[:, 0], a[:, 1], b[:, 0], b[:, 1]
-    zero, one = np.zeros_like(x), np.ones_like(x)
-    rows_u = np.stack([-x, -y, -one, zero, zero, zero, u * x, u * y, u], axis=1)
-    rows_v = np.stack([zero, zero, zero, -x, -y, -one, v * x, v * y, v], axis=1)
-    _, _, vt = np.linalg.svd(np.concatenate([rows_u, rows_v]), full_matrices=False)
-    return vt[-1].reshape(3, 3)
-
-
 def fit_homography(
     src_xy: np.ndarray, dst_xy: np.ndarray, robust_px: float = ROBUST_SCALE_PX
 ) -> np.ndarray:
     """Least-squares H_src_to_dst of point correspondences (N >= 4), robust to a few outliers.
 
-    Normalised DLT, then Levenberg-Marquardt style refinement (scipy's trust region) of the
+    Least squares (OpenCV), then Levenberg-Marquardt style refinement (scipy's trust region) of the
     transfer error in dst pixels with a soft-L1 loss of scale `robust_px` src pixels (converted
     by the ratio of the two point clouds' spreads). Normalised to H[2, 2] = 1.
     """
@@ -192,7 +177,10 @@ def fit_homography(
     if len(src) < 4 or src.shape != dst.shape:
         raise ValueError(f"need >= 4 point pairs of equal shape, got {src.shape}, {dst.shape}")
     T_src, T_dst = _normaliser(src), _normaliser(dst)
-    Hn = _dlt(transform(T_src, src), transform(T_dst, dst))
+    H0, _ = cv2.findHomography(src, dst, 0)  # least squares: the start
+    if H0 is None:
+        raise ValueError("degenerate point pairs: no homography")
+    Hn = T_dst @ H0 @ np.linalg.inv(T_src)
     Hn = Hn / Hn[2, 2]
     T_dst_inv = np.linalg.inv(T_dst)
 
