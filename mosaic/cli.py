@@ -439,6 +439,10 @@ def register(
         Path | None,
         typer.Option(help="PNG: the moving image warped onto the fixed one, and a checkerboard."),
     ] = None,
+    matches: Annotated[
+        Path | None,
+        typer.Option(help="Image: both images side by side, keypoints and inlier matches drawn."),
+    ] = None,
 ) -> None:
     """Register MOVING onto FIXED and print H_moving_to_fixed (full-resolution pixels)."""
     _setup_logging(False)
@@ -449,6 +453,8 @@ def register(
             )
         if warp is not None:
             warp = check_output_path(warp)
+        if matches is not None:
+            matches = check_output_path(matches)
         config = _config(config_path, detector)
         extractor = FeatureExtractor(config.features)
         if pairs is not None:
@@ -469,6 +475,19 @@ def register(
         if fixed is None or moving is None:
             raise InputError("give FIXED and MOVING images, or --pairs PAIRS.csv")
         result = _pair_result(fixed, moving, config, extractor, model, warp)
+        if matches is not None:  # keypoints and inlier matches of the pair (mosaic.viz)
+            from mosaic.viz import pair_matches_picture
+
+            H, Q = result["H_moving_to_fixed"], result["Q_moving_to_fixed"]
+            picture = pair_matches_picture(
+                read_image(fixed),
+                read_image(moving),
+                config,
+                extractor,
+                None if H is None else np.array(H),
+                None if Q is None else np.array(Q),
+            )
+            write_image(matches, picture)
         if as_json:
             typer.echo(json.dumps(result, indent=2))
         else:

@@ -150,6 +150,94 @@ def frame_outline(H_frame_to_display: np.ndarray, width: int, height: int) -> np
     return np.vstack([pts, pts[:1]])
 
 
+def draw_pair_matches(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    xy_fixed: np.ndarray,
+    xy_moving: np.ndarray,
+    idx_fixed: np.ndarray,
+    idx_moving: np.ndarray,
+    inliers: np.ndarray,
+    max_lines: int = 80,
+) -> np.ndarray:
+    """FIXED | MOVING side by side (BGR uint8, height of the taller, widths added) with every
+    keypoint drawn (the viewer's colours: green inlier, red matched but rejected, grey
+    unmatched) and a green line for each inlier match (fixed point to moving point); at most
+    `max_lines` of them, evenly picked in match order, so that the images stay visible.
+
+    `xy_*`: (N, 2) keypoints in each image's pixels; match k pairs `xy_fixed[idx_fixed[k]]` with
+    `xy_moving[idx_moving[k]]`; `inliers`: (M,) bool over the matches."""
+    import cv2
+
+    def bgr(image: np.ndarray) -> np.ndarray:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image
+
+    (hf, wf), (hm, wm) = fixed.shape[:2], moving.shape[:2]
+    out = np.zeros((max(hf, hm), wf + wm, 3), np.uint8)
+    out[:hf, :wf] = bgr(fixed)
+    out[:hm, wf:] = bgr(moving)
+    thick = max(1, round(max(out.shape[:2]) / 800))
+    radius = 2 * thick + 1
+    idx_fixed, idx_moving = np.asarray(idx_fixed, np.intp), np.asarray(idx_moving, np.intp)
+    inliers = np.asarray(inliers, bool)
+    offset = np.array([wf, 0], np.float64)
+    for xy, idx, shift in ((xy_fixed, idx_fixed, 0 * offset), (xy_moving, idx_moving, offset)):
+        classes = keypoint_classes(len(xy), idx, inliers)
+        for cls in (UNMATCHED, OUTLIER, INLIER):  # inliers drawn last, on top
+            colour = _CLASSES[cls][1][::-1]  # RGB -> BGR
+            for x, y in np.round(np.asarray(xy)[classes == cls] + shift).astype(int).tolist():
+                cv2.circle(out, (x, y), radius, colour, thick, lineType=cv2.LINE_AA)
+    colour = _CLASSES[INLIER][1][::-1]
+    picked = np.flatnonzero(inliers)
+    if len(picked) > max_lines:
+        picked = picked[np.linspace(0, len(picked) - 1, max_lines).round().astype(int)]
+    a = np.round(np.asarray(xy_fixed)[idx_fixed[picked]]).astype(int)
+    b = np.round(np.asarray(xy_moving)[idx_moving[picked]] + offset).astype(int)
+    for p, q in zip(a.tolist(), b.tolist(), strict=True):
+        cv2.line(out, tuple(p), tuple(q), colour, thick, lineType=cv2.LINE_AA)
+    return out
+
+
+def pair_matches_picture(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    config: Config,
+    extractor: Any,
+    H_moving_to_fixed: np.ndarray | None,
+    Q_moving_to_fixed: np.ndarray | None = None,
+) -> np.ndarray:
+    """`mosaic register --matches`: the pair's keypoints and matches as `register_pair` finds
+    them (each image at its working size, mapped to its full-resolution pixels), an inlier
+    being a match that the final transform (Q if given, else H; none when failed) carries to
+    within RANSAC's threshold at full resolution; drawn by `draw_pair_matches`."""
+    from mosaic.features import to_frame_pixels
+    from mosaic.matching import match_descriptors
+    from mosaic.preprocess import prepare, to_working_size
+    from mosaic.registration import apply_homography, apply_quadratic
+
+    pre = config.preprocess
+    xys, scales = [], []
+    descriptors = []
+    for image in (fixed, moving):
+        work, S = to_working_size(image, pre.max_side_px, pre.fov_diameter_px)
+        features = extractor(prepare(work, pre))
+        scale = 1.0 if S is None else float(S[0, 0])
+        xys.append(to_frame_pixels(features.xy, np.float32(1.0 / scale)))
+        scales.append(scale)
+        descriptors.append(features.descriptors)
+    matches = match_descriptors(descriptors[0], descriptors[1], config.matching)
+    a, b = xys[0][matches.idx_a], xys[1][matches.idx_b]
+    inliers = np.zeros(len(matches), bool)
+    if H_moving_to_fixed is not None and len(matches):
+        if Q_moving_to_fixed is not None:
+            mapped = apply_quadratic(np.asarray(Q_moving_to_fixed), b)
+        else:
+            mapped = apply_homography(np.asarray(H_moving_to_fixed), b)
+        error = np.linalg.norm(mapped - a, axis=1)
+        inliers = error <= config.registration.reproj_threshold_px / min(scales)
+    return draw_pair_matches(fixed, moving, *xys, matches.idx_a, matches.idx_b, inliers)
+
+
 def config_toml(tables: Mapping[str, Mapping[str, Any]]) -> str:
     """The config as TOML text (what a `--config` file with these values would contain)."""
     lines: list[str] = []
