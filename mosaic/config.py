@@ -1,8 +1,10 @@
 """Run configuration: one frozen dataclass per TOML table, strict loading.
 
 `sample_config.toml` at the repository root equals these defaults (a test checks it).
-Unknown tables or keys, wrong types and values outside their choices raise `ConfigError`
-naming the offending key, so a typo never silently falls back to a default.
+Unknown tables or keys, wrong types, values outside their choices and numbers outside their
+range (`RANGES`: one place for every numeric key; NaN and infinity are never valid) raise
+`ConfigError` naming the offending key and what it allows, so a typo never silently falls back
+to a default and a bad value never reaches OpenCV as a traceback.
 """
 
 from __future__ import annotations
@@ -113,6 +115,8 @@ class PipelineConfig:
     step: int = 1  # process every step-th frame
     max_frames: int = 0  # stop after this many processed frames; 0: whole video
     overlap: bool = True  # extract frame i+1 in a background thread while frame i registers
+    checkpoint_every_s: float = 30.0  # write the live mosaic and the report so far (summary.
+    # complete = false) this often while streaming, so a killed run leaves them; 0: off
 
 
 @dataclass(frozen=True)
@@ -177,72 +181,109 @@ CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
     ("pipeline", "on_failure"): ("stop", "skip", "restart"),
     ("pipeline", "strategy"): ("keyframes", "chain"),
 }
-POSITIVE = {
-    ("preprocess", "clahe_clip_limit"),
-    ("preprocess", "bilateral_sigma_color"),
-    ("preprocess", "bilateral_sigma_space"),
-    ("matching", "ratio"),
-    ("registration", "confidence"),
-    ("preprocess", "clahe_tile_grid"),
-    ("preprocess", "bilateral_diameter_px"),
-    ("features", "max_keypoints"),
-    ("features", "nms_window_px"),
-    ("features", "descriptor_size_px"),
-    ("features", "detect_scale"),
-    ("registration", "reproj_threshold_px"),
-    ("registration", "max_iters"),
-    ("compose", "max_canvas_px"),
-    ("pipeline", "step"),
-    ("keyframes", "max_keyframes"),
+
+
+@dataclass(frozen=True)
+class Range:
+    """The numbers a key accepts: between `low` and `high` (each bound included unless open),
+    and also 0 when `off` (0 turns the feature off)."""
+
+    low: float = 0.0
+    high: float = math.inf
+    low_open: bool = False
+    high_open: bool = False
+    off: bool = False
+
+    def __contains__(self, value: float) -> bool:
+        if not math.isfinite(value):
+            return False
+        if self.off and value == 0:
+            return True
+        above = value > self.low if self.low_open else value >= self.low
+        below = value < self.high if self.high_open else value <= self.high
+        return above and below
+
+    def __str__(self) -> str:
+        low, high = f"{self.low:g}", f"{self.high:g}"
+        if math.isinf(self.high):
+            text = f"{'>' if self.low_open else '>='} {low}"
+        else:
+            text = f"in {'(' if self.low_open else '['}{low}, {high}{')' if self.high_open else ']'}"
+        return f"0 (off) or {text}" if self.off else text
+
+
+AT_LEAST_0 = Range()
+ABOVE_0 = Range(low_open=True)
+AT_LEAST_1 = Range(1)
+FRACTION = Range(0, 1)  # [0, 1]
+GREY_LEVEL = Range(0, 255)
+#: The range of every numeric key; a key missing here (a new one) gets `AT_LEAST_0`.
+RANGES: dict[tuple[str, str], Range] = {
+    ("preprocess", "clahe_clip_limit"): ABOVE_0,
+    ("preprocess", "clahe_tile_grid"): Range(1, 64),
+    ("preprocess", "bilateral_diameter_px"): Range(1, 31),
+    ("preprocess", "bilateral_sigma_color"): ABOVE_0,
+    ("preprocess", "bilateral_sigma_space"): ABOVE_0,
+    ("preprocess", "fov_threshold"): GREY_LEVEL,
+    ("preprocess", "fov_erode_px"): AT_LEAST_0,
+    ("preprocess", "overlay_max_range"): GREY_LEVEL,
+    ("preprocess", "overlay_margin_px"): AT_LEAST_0,
+    ("preprocess", "max_side_px"): Range(64, off=True),
+    ("preprocess", "fov_diameter_px"): Range(64, off=True),
+    ("features", "max_keypoints"): AT_LEAST_1,
+    ("features", "nms_window_px"): AT_LEAST_1,
+    ("features", "score_threshold"): Range(0, 1, high_open=True),  # scores lie in [0, 1]
+    ("features", "descriptor_size_px"): ABOVE_0,
+    ("features", "detect_scale"): Range(0.1, 1),
+    ("features", "extra_scale"): Range(0.1, 1, off=True),
+    ("matching", "ratio"): Range(0, 1, low_open=True),
+    ("registration", "reproj_threshold_px"): ABOVE_0,
+    ("registration", "max_iters"): AT_LEAST_1,
+    # a probability: 1 would ask RANSAC for certainty
+    ("registration", "confidence"): Range(0, 1, low_open=True, high_open=True),
+    ("registration", "min_inliers"): AT_LEAST_0,
+    ("registration", "perspective_prior"): AT_LEAST_0,
+    ("registration", "refine_levels"): Range(0, 6),
+    ("compose", "max_canvas_px"): Range(64),
+    ("compose", "feather_px"): AT_LEAST_0,
+    ("compose", "quality_threshold"): FRACTION,
+    ("pipeline", "step"): AT_LEAST_1,
+    ("pipeline", "max_frames"): AT_LEAST_0,
+    ("pipeline", "checkpoint_every_s"): AT_LEAST_0,
+    ("keyframes", "min_overlap"): FRACTION,
+    ("keyframes", "promote_min_inliers"): AT_LEAST_0,
+    ("keyframes", "promote_inlier_ratio"): FRACTION,
+    ("keyframes", "promote_coverage_ratio"): FRACTION,
+    ("keyframes", "max_keyframes"): AT_LEAST_1,
+    ("keyframes", "relocalise_candidates"): AT_LEAST_0,
+    ("keyframes", "loop_min_overlap"): FRACTION,
+    ("gating", "min_sharpness_ratio"): FRACTION,
+    ("gating", "min_fov_fraction"): FRACTION,
 }
 
-AT_MOST_ONE = {
-    ("features", "detect_scale"),
-    ("features", "extra_scale"),
-    ("compose", "quality_threshold"),
-    ("matching", "ratio"),
-    ("keyframes", "min_overlap"),
-    ("keyframes", "promote_inlier_ratio"),
-    ("keyframes", "promote_coverage_ratio"),
-    ("keyframes", "loop_min_overlap"),
-    ("gating", "min_sharpness_ratio"),
-    ("gating", "min_fov_fraction"),
-}
-BELOW_ONE = {("registration", "confidence")}  # a probability: 1 would ask RANSAC for certainty
-AT_LEAST_IF_SET = {  # 0 turns these off
-    ("preprocess", "max_side_px"): 64,
-    ("preprocess", "fov_diameter_px"): 64,
-}
-AT_MOST = {("registration", "refine_levels"): 6}
+
+def value_range(table: str, key: str) -> Range:
+    """The range a numeric key accepts (`RANGES`, else >= 0)."""
+    return RANGES.get((table, key), AT_LEAST_0)
 
 
 def _check_value(table: str, key: str, value: Any, expected: type) -> Any:
     where = f"[{table}] {key}"
+    numeric = expected in (int, float)
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if (expected is not bool and isinstance(value, bool)) or not isinstance(value, expected):
+        kind = {int: "an integer", float: "a number"}.get(expected, expected.__name__)
+        allowed = f" {value_range(table, key)}" if numeric else ""
         raise ConfigError(
-            f"config {where} must be {expected.__name__}, got {type(value).__name__} {value!r}"
+            f"config {where} must be {kind}{allowed}, got {type(value).__name__} {value!r}"
         )
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ConfigError(f"config {where} must be a finite number, got {value!r}")
     choices = CHOICES.get((table, key))
     if choices is not None and value not in choices:
         raise ConfigError(f"config {where} must be one of {', '.join(choices)}, got {value!r}")
-    if (table, key) in POSITIVE and value <= 0:
-        raise ConfigError(f"config {where} must be > 0, got {value!r}")
-    if (table, key) in AT_MOST_ONE and value > 1:
-        raise ConfigError(f"config {where} must be <= 1, got {value!r}")
-    if (table, key) in BELOW_ONE and value >= 1:
-        raise ConfigError(f"config {where} must be < 1, got {value!r}")
-    most = AT_MOST.get((table, key))
-    if most is not None and value > most:
-        raise ConfigError(f"config {where} must be <= {most}, got {value!r}")
-    least = AT_LEAST_IF_SET.get((table, key))
-    if least is not None and 0 < value < least:
-        raise ConfigError(f"config {where} must be 0 (off) or >= {least}, got {value!r}")
-    if isinstance(value, int | float) and not isinstance(value, bool) and value < 0:
-        raise ConfigError(f"config {where} must be >= 0, got {value!r}")
+    if numeric and value not in (allowed := value_range(table, key)):
+        finite = "" if math.isfinite(value) else "a finite number "
+        raise ConfigError(f"config {where} must be {finite}{allowed}, got {value!r}")
     return value
 
 

@@ -1,11 +1,12 @@
 import dataclasses
 import math
+import re
 import typing
 from pathlib import Path
 
 import pytest
 
-from mosaic.config import POSITIVE, Config, config_from_dict, load_config, with_overrides
+from mosaic.config import Config, config_from_dict, load_config, value_range, with_overrides
 from mosaic.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -32,8 +33,13 @@ def test_missing_keys_take_defaults(tmp_path):
         ("[pipeline]\nstep = 0\n", "step"),
         ("[matching]\ncross_check = 1\n", "cross_check"),
         ("[features]\nmax_keypoints = 'many'\n", "max_keypoints"),
-        ("[features]\ndetect_scale = 1.5\n", "detect_scale must be <= 1"),
-        ("[features]\ndetect_scale = 0\n", "detect_scale must be > 0"),
+        ("[features]\ndetect_scale = 1.5\n", r"detect_scale must be in \[0.1, 1\], got 1.5"),
+        ("[features]\ndetect_scale = 0\n", r"detect_scale must be in \[0.1, 1\]"),
+        ("[features]\ndetect_scale = nan\n", r"detect_scale must be a finite number in \[0.1, 1\]"),
+        ("[features]\ndescriptor_size_px = inf\n", "descriptor_size_px must be a finite number > 0"),
+        ("[registration]\nreproj_threshold_px = nan\n", "reproj_threshold_px must be a finite"),
+        ("[registration]\nconfidence = 1.5\n", r"confidence must be in \(0, 1\), got 1.5"),
+        ("[features]\nmax_keypoints = nan\n", "max_keypoints must be an integer >= 1, got float"),
         ("[features]\ndevice = 'gpu'\n", "device must be one of cpu, cuda"),
         ("[pipeline]\noverlap = 'yes'\n", "overlap must be bool"),
         ("[preprocess]\nmax_side_px = 10\n", r"max_side_px must be 0 \(off\) or >= 64"),
@@ -70,19 +76,31 @@ def _numeric_keys():
 
 
 @pytest.mark.parametrize(("table", "key", "kind"), list(_numeric_keys()))
-def test_every_numeric_key_rejects_non_finite_and_negative_values(table, key, kind):
-    """NaN, inf and negative values are errors that name the key; 0 only where it means
-    something (off, none)."""
-    bad = [-1] + ([math.nan, math.inf, -math.inf] if kind is float else [])
-    for value in bad:
-        with pytest.raises(ConfigError, match=rf"\[{table}\] {key}"):
+def test_every_numeric_key_rejects_non_finite_negative_and_out_of_range_values(table, key, kind):
+    """NaN, inf and negative values are errors that name the key and its range; 0 only where
+    its range (or "0: off") holds it; the default always lies inside."""
+    allowed = value_range(table, key)
+    message = rf"\[{table}\] {key} must be .*{re.escape(str(allowed))}, got"
+    for value in (math.nan, math.inf, -math.inf, -1, -0.5):
+        with pytest.raises(ConfigError, match=message):
             config_from_dict({table: {key: value}})
-    zero_is_bad = (table, key) in POSITIVE
-    if zero_is_bad:
-        with pytest.raises(ConfigError, match=rf"\[{table}\] {key}"):
-            config_from_dict({table: {key: 0}})
-    else:
+    if 0 in allowed:
         assert getattr(getattr(config_from_dict({table: {key: 0}}), table), key) == 0
+    else:
+        with pytest.raises(ConfigError, match=message):
+            config_from_dict({table: {key: 0}})
+    assert getattr(getattr(Config(), table), key) in allowed
+    if math.isfinite(allowed.high):
+        with pytest.raises(ConfigError, match=message):
+            config_from_dict({table: {key: allowed.high + 1}})
+
+
+def test_range_text():
+    assert str(value_range("registration", "confidence")) == "in (0, 1)"
+    assert str(value_range("features", "extra_scale")) == "0 (off) or in [0.1, 1]"
+    assert str(value_range("pipeline", "step")) == ">= 1"
+    assert 1 not in value_range("registration", "confidence")
+    assert math.nan not in value_range("compose", "feather_px")
 
 
 @pytest.mark.parametrize("value", [1.0, 1.5, 0.0])
