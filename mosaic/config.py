@@ -208,7 +208,8 @@ class Range:
         if math.isinf(self.high):
             text = f"{'>' if self.low_open else '>='} {low}"
         else:
-            text = f"in {'(' if self.low_open else '['}{low}, {high}{')' if self.high_open else ']'}"
+            opening, closing = "(" if self.low_open else "[", ")" if self.high_open else "]"
+            text = f"in {opening}{low}, {high}{closing}"
         return f"0 (off) or {text}" if self.off else text
 
 

@@ -36,7 +36,7 @@ def test_missing_keys_take_defaults(tmp_path):
         ("[features]\ndetect_scale = 1.5\n", r"detect_scale must be in \[0.1, 1\], got 1.5"),
         ("[features]\ndetect_scale = 0\n", r"detect_scale must be in \[0.1, 1\]"),
         ("[features]\ndetect_scale = nan\n", r"detect_scale must be a finite number in \[0.1, 1\]"),
-        ("[features]\ndescriptor_size_px = inf\n", "descriptor_size_px must be a finite number > 0"),
+        ("[features]\ndescriptor_size_px = inf\n", "descriptor_size_px must be a finite num"),
         ("[registration]\nreproj_threshold_px = nan\n", "reproj_threshold_px must be a finite"),
         ("[registration]\nconfidence = 1.5\n", r"confidence must be in \(0, 1\), got 1.5"),
         ("[features]\nmax_keypoints = nan\n", "max_keypoints must be an integer >= 1, got float"),
