@@ -158,7 +158,7 @@ def draw_pair_matches(
     idx_fixed: np.ndarray,
     idx_moving: np.ndarray,
     inliers: np.ndarray,
-    max_lines: int = 80,
+    max_lines: int = 50,
 ) -> np.ndarray:
     """FIXED | MOVING side by side (BGR uint8, height of the taller, widths added) with every
     keypoint drawn (the viewer's colours: green inlier, red matched but rejected, grey
@@ -177,7 +177,7 @@ def draw_pair_matches(
     out[:hf, :wf] = bgr(fixed)
     out[:hm, wf:] = bgr(moving)
     thick = max(1, round(max(out.shape[:2]) / 800))
-    radius = 2 * thick + 1
+    radius = thick + 1
     idx_fixed, idx_moving = np.asarray(idx_fixed, np.intp), np.asarray(idx_moving, np.intp)
     inliers = np.asarray(inliers, bool)
     offset = np.array([wf, 0], np.float64)

@@ -20,10 +20,15 @@ def _is_green(pixel: np.ndarray) -> bool:
     return bool(np.abs(pixel.astype(int) - INLIER_BGR).max() <= 40)
 
 
+def around(image: np.ndarray, x: int, y: int, r: int = 4) -> np.ndarray:
+    """The pixels of the (2r + 1)^2 patch centred on (x, y), as rows of BGR."""
+    return image[y - r : y + r + 1, x - r : x + r + 1].reshape(-1, 3).astype(int)
+
+
 def test_draw_pair_matches_size_keypoints_and_inlier_lines():
     fixed = np.zeros((100, 200), np.uint8)
     moving = np.zeros((120, 150, 3), np.uint8)
-    xy_fixed = np.array([[20.0, 20.0], [150.0, 80.0], [100.0, 50.0]])
+    xy_fixed = np.array([[20.0, 20.0], [150.0, 80.0], [100.0, 88.0]])
     xy_moving = np.array([[30.0, 90.0], [120.0, 20.0], [60.0, 60.0]])
     # match 0: fixed 0 <-> moving 0 (inlier); match 1: fixed 1 <-> moving 1 (rejected)
     out = draw_pair_matches(fixed, moving, xy_fixed, xy_moving, [0, 1], [0, 1], [True, False])
@@ -32,10 +37,13 @@ def test_draw_pair_matches_size_keypoints_and_inlier_lines():
     assert _is_green(out[55, 125])
     # the rejected match has no line: its midpoint stays black; its keypoints are red circles
     assert out[50, 235].max() == 0
-    assert out[80, 150 + 3, 2] > 150 and out[80, 150 + 3, 1] < 120
-    # an unmatched keypoint is a grey circle
-    grey = out[50, 100 + 3]
-    assert grey.max() - grey.min() < 10 and grey.min() > 80
+    red = around(out, 150, 80)
+    assert ((red[:, 2] > 150) & (red[:, 1] < 120)).any()
+    assert (around(out, 200 + 120, 20)[:, 2] > 150).any()
+    # an unmatched keypoint is a grey circle, and nothing of the inlier colour is near it
+    grey = around(out, 100, 88)
+    assert ((grey.max(axis=1) - grey.min(axis=1) < 10) & (grey.min(axis=1) > 80)).any()
+    assert not any(_is_green(px) for px in grey)
     # no match is an inlier: no line at all between the images
     out = draw_pair_matches(fixed, moving, xy_fixed, xy_moving, [0, 1], [0, 1], [False, False])
     assert not _is_green(out[55, 125])
