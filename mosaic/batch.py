@@ -32,7 +32,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager, suppress
+from contextlib import ExitStack, contextmanager, suppress
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -41,7 +41,7 @@ from urllib.parse import quote
 
 from mosaic.config import Config, load_config
 from mosaic.errors import InputError, MosaicError, OutputError
-from mosaic.io import _atomic_write_bytes, natural_key, write_json
+from mosaic.io import keep_native_stderr, natural_key, write_bytes, write_json
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 
 log = logging.getLogger(__name__)
@@ -250,12 +250,15 @@ def _video_log(path: Path) -> Iterator[None]:
         lg.setLevel(logging.INFO)
         lg.propagate = False  # the terminal has the progress bar and a line per video
     saved_fd = None
+    kept = ExitStack()
     if _IN_WORKER:
         sys.stderr.flush()
         saved_fd = os.dup(2)
         os.dup2(handler.stream.fileno(), 2)
+        kept.enter_context(keep_native_stderr())  # ffmpeg's own reason, in the video's log
     try:
-        yield
+        with kept:
+            yield
     finally:
         if saved_fd is not None:
             sys.stderr.flush()
@@ -712,10 +715,10 @@ def write_summary(out: Path, rows: list[dict[str, Any]], meta: dict[str, Any]) -
     writer.writeheader()
     for row in rows:
         writer.writerow({k: "" if row.get(k) is None else row[k] for k in COLUMNS})
-    _atomic_write_bytes(out / "summary.csv", buffer.getvalue().encode("utf-8"))
+    write_bytes(out / "summary.csv", buffer.getvalue().encode("utf-8"))
     counts = {s: sum(r["status"] == s for r in rows) for s in (OK, FAILED, INTERRUPTED, NOT_RUN)}
     write_json(out / "summary.json", {"meta": meta, "counts": counts, "videos": rows})
-    _atomic_write_bytes(out / "index.html", render_index(rows, meta, counts).encode("utf-8"))
+    write_bytes(out / "index.html", render_index(rows, meta, counts).encode("utf-8"))
 
 
 _STATUS_ORDER = {FAILED: 0, INTERRUPTED: 1, NOT_RUN: 2, OK: 3}

@@ -9,11 +9,13 @@ Frames are streamed one at a time; a frame that cannot be decoded is reported as
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import queue
 import re
+import sys
 import tempfile
 import threading
 from collections.abc import Iterable, Iterator
@@ -205,7 +207,8 @@ class FrameSource:
         return Frame(index, image, None)
 
     def _corrupt(self, index: int, reason: str) -> Frame:
-        log.warning("frame %d of %s skipped: %s", index, self.info.path, reason)
+        # the pipeline warns when it skips the frame (once); a re-read must not warn again
+        log.info("frame %d of %s unusable: %s", index, self.info.path, reason)
         return Frame(index, None, reason)
 
     def _iter_folder(self) -> Iterator[Frame]:
@@ -227,10 +230,12 @@ class FrameSource:
         capture, first = self._capture, self._first_image
         self._capture, self._first_image = None, None  # a second iteration reopens the file
         if capture is None:
-            capture = cv2.VideoCapture(self.info.path)
-            if not capture.isOpened():
+            with quiet_stderr():
+                capture = cv2.VideoCapture(self.info.path)
+                opened = capture.isOpened()
+                ok, first = capture.read() if opened else (False, None)
+            if not opened:
                 raise InputError(f"not a video OpenCV can read: {self.info.path}")
-            ok, first = capture.read()
             if not ok:
                 first = None
         try:
@@ -315,12 +320,52 @@ def _open_folder(path: Path, step: int, max_frames: int) -> FrameSource:
     return FrameSource(info, step, max_frames, files=files)
 
 
+_native_stderr = threading.local()  # .kept: OpenCV's / ffmpeg's lines go to a log file
+
+
+@contextlib.contextmanager
+def keep_native_stderr() -> Iterator[None]:
+    """Within: `quiet_stderr` keeps OpenCV's and ffmpeg's lines (stderr is a log file, as in
+    a `mosaic batch` worker, where they help diagnose a broken video)."""
+    before = getattr(_native_stderr, "kept", False)
+    _native_stderr.kept = True
+    try:
+        yield
+    finally:
+        _native_stderr.kept = before
+
+
+@contextlib.contextmanager
+def quiet_stderr() -> Iterator[None]:
+    """Silence the process's stderr (file descriptor 2) for a moment: OpenCV and ffmpeg print
+    their own lines there ("moov atom not found") when probing a file, before our one-line
+    error. Python's own stderr is flushed first; the descriptor is restored on exit."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # no real stderr (captured): nothing to hide
+        fd = None
+    if fd is None or getattr(_native_stderr, "kept", False):
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "wb") as devnull:
+            os.dup2(devnull.fileno(), fd)
+        yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
 def _open_video(path: Path, step: int, max_frames: int) -> FrameSource:
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
+    with quiet_stderr():
+        capture = cv2.VideoCapture(str(path))
+        opened = capture.isOpened()
+        ok, first = capture.read() if opened else (False, None)
+    if not opened:
         capture.release()
         raise InputError(f"not a video OpenCV can read: {path}")
-    ok, first = capture.read()
     if not ok or first is None or first.size == 0:
         capture.release()
         raise InputError(f"video has no readable frames: {path}")
@@ -368,11 +413,17 @@ def open_frames(path: str | Path, step: int = 1, max_frames: int = 0) -> FrameSo
 # --------------------------------------------------------------------------------------------
 
 
-def check_output_path(path: str | Path, suffixes: frozenset[str] | None = None) -> Path:
-    """Fail early if `path` cannot be written: missing / read-only folder or unsupported format.
+def check_output_path(
+    path: str | Path, suffixes: frozenset[str] | None = None, probe: bool = True
+) -> Path:
+    """Fail early if `path` cannot be written: missing / read-only folder, a read-only or
+    immutable file, or an unsupported format.
 
     `suffixes` are the accepted (lower-case) suffixes; by default (None) the image formats
-    OpenCV writes for the mosaic plus `.json` (the run report).
+    OpenCV writes for the mosaic plus `.json` (the run report). `probe`: also try it, so that
+    what permissions do not tell (an immutable file or folder, a read-only file system, a name
+    too long, root on a read-only folder) fails now: a new file is created then removed, an
+    existing one opened for appending (its contents untouched).
     """
     p = Path(path).expanduser()
     parent = p.parent
@@ -388,7 +439,63 @@ def check_output_path(path: str | Path, suffixes: frozenset[str] | None = None) 
     if suffix not in allowed or not image_ok:
         kinds = ", ".join(sorted(s.lstrip(".") for s in allowed))
         raise OutputError(f"unsupported output format '{p.suffix}' (use {kinds}): {p}")
+    if probe:
+        _probe_writable(p)
     return p
+
+
+def _probe_writable(p: Path) -> None:
+    """Create and remove `p` (or open an existing `p` for appending); OutputError if refused."""
+    try:
+        if p.exists():
+            if not os.access(p, os.W_OK):
+                raise OutputError(f"output file is read-only: {p}")
+            os.close(os.open(p, os.O_WRONLY | os.O_APPEND))
+            # the atomic writes put a temporary file beside it, then rename
+            with tempfile.NamedTemporaryFile(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp"):
+                pass
+        else:
+            os.close(os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            os.unlink(p)
+    except OSError as exc:
+        raise OutputError(f"cannot write {p}: {exc.strerror or exc}") from exc
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path beside `path` (same suffix) to write to; renamed onto `path` when the
+    block ends normally, removed otherwise: readers never see a half-written file. For writers
+    that want a file name (matplotlib's savefig, torch.save, cv2.VideoWriter)."""
+    p = Path(path).expanduser()
+    if not p.parent.is_dir():
+        raise OutputError(f"output folder does not exist: {p.parent}")
+    try:
+        fd, name = tempfile.mkstemp(dir=p.parent, prefix=f".{p.stem}.", suffix=f".tmp{p.suffix}")
+        os.close(fd)
+    except OSError as exc:
+        raise OutputError(f"cannot write {p}: {exc.strerror or exc}") from exc
+    tmp = Path(name)
+    try:
+        yield tmp
+        os.chmod(tmp, 0o666 & ~_UMASK)
+        os.replace(tmp, p)
+    except OSError as exc:
+        raise OutputError(f"cannot write {p}: {exc.strerror or exc}") from exc
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
+
+def write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write `data` atomically (temporary file in the same folder, then `os.replace`)."""
+    p = Path(path).expanduser()
+    _atomic_write_bytes(p, data)
+    return p
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    """Write UTF-8 text atomically; OutputError on failure."""
+    return write_bytes(path, text.encode("utf-8"))
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -417,15 +417,19 @@ class MosaicBuilder:
                 self._refine(segment)
             if reread is not None and self.config.keyframes.rerender:
                 self._rerender(reread)
+        result = self.snapshot(interrupted)
+        self.viewer.finish(result.report, result.main.image if result.main is not None else None)
+        return result
+
+    def snapshot(self, interrupted: bool = True) -> MosaicResult:
+        """The segment canvases as they are and the report so far (no refinement, the viewer
+        not told): what `finish` renders, and a run's periodic checkpoint."""
         mosaics = [
             SegmentMosaic(s.index, s.canvas.render(), s.canvas.H_ref_to_canvas, s.canvas.n_frames)
             for s in self._segments
             if s.canvas.n_frames
         ]
-        report = build_report(self, mosaics, interrupted)
-        result = MosaicResult(mosaics, report)
-        self.viewer.finish(report, result.main.image if result.main is not None else None)
-        return result
+        return MosaicResult(mosaics, build_report(self, mosaics, interrupted))
 
 
 def _leading_run(statuses: list[str]) -> int:

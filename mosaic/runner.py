@@ -7,6 +7,11 @@ file, then `os.replace`). The report's `summary.complete` is true only for a run
 normally, so a report saying so means every output beside it is whole (`mosaic batch --resume`
 relies on it).
 
+Every `[pipeline] checkpoint_every_s` while streaming (and once more when streaming ends, if a
+checkpoint was written), the live canvas and the report so far are written the same way, with
+`summary.complete = false` and `summary.checkpoint = true`: a run killed outright (SIGKILL, out
+of memory, power loss) leaves its last checkpoint; the final write replaces it.
+
 Ctrl-C while streaming or while refining / re-rendering, or an exception in either, does not lose
 the run (`salvage`): the live canvas and the unrefined poses of the frames processed so far are
 written instead, with `summary.interrupted` (and `summary.error` after an exception) and
@@ -34,7 +39,7 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from mosaic.config import Config
-from mosaic.errors import MosaicError
+from mosaic.errors import MosaicError, OutputError
 from mosaic.features import FeatureExtractor
 from mosaic.io import (
     IMAGE_READ_SUFFIXES,
@@ -55,6 +60,8 @@ log = logging.getLogger(__name__)
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv")
 #: Longer side of the thumbnail of the main mosaic (pixels).
 THUMBNAIL_SIDE_PX = 320
+#: Frames with a shorter side than this give the detectors too few keypoints to register.
+MIN_FRAME_SIDE_PX = 64
 
 Opener = Callable[[Path, int, int], FrameSource]
 
@@ -106,7 +113,8 @@ class Outputs:
     thumbnail: Path | None = None
 
     def checked(self) -> Outputs:
-        """The same paths, each checked writable (folder exists, format known) before the run."""
+        """The same paths, each checked writable before the run (folder exists, format known,
+        the file can be created or replaced: `io.check_output_path`)."""
         return Outputs(*(None if p is None else check_output_path(p) for p in self.paths()))
 
     def paths(self) -> tuple[Path | None, Path | None, Path | None]:
@@ -137,12 +145,50 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
+class _Checkpoints:
+    """Writes the live mosaic and the report so far every `every_s` seconds (0: never)."""
+
+    def __init__(
+        self,
+        builder: MosaicBuilder,
+        outputs: Outputs,
+        info: VideoInfo,
+        started: float,
+        every_s: float,
+    ) -> None:
+        self.builder, self.outputs, self.info, self.started = builder, outputs, info, started
+        self.every_s = every_s if outputs.mosaic is not None or outputs.report is not None else 0
+        self.last = time.perf_counter()
+        self.written = 0
+        self._warned = False
+
+    def due(self) -> None:
+        """Write one if `every_s` has passed since the start or the last one."""
+        if self.every_s > 0 and time.perf_counter() - self.last >= self.every_s:
+            self.write()
+
+    def write(self) -> None:
+        """Write the checkpoint now; a failure is warned (once) and the run goes on."""
+        try:
+            result = self.builder.snapshot()
+            _write_outputs(result, self.outputs, self.info, self.started, checkpoint=True)
+        except OutputError as exc:
+            if not self._warned:
+                log.warning("checkpoint not written: %s", exc)
+                self._warned = True
+        else:
+            self.written += 1
+            log.info("checkpoint %d: %d frames", self.written, len(self.builder.records))
+        self.last = time.perf_counter()
+
+
 def _stream(
     builder: MosaicBuilder,
     frames: Iterable[Frame],
     total: int | None,
     progress: str | None,
     on_record: Callable[[FrameRecord], None] | None,
+    checkpoints: _Checkpoints | None = None,
 ) -> None:
     with ExitStack() as stack:
         bar = None
@@ -159,6 +205,8 @@ def _stream(
                 registered += record.status == "registered"
                 bar.set_postfix(registered=registered, refresh=False)
                 bar.update()
+            if checkpoints is not None:
+                checkpoints.due()
             if builder.stopped:
                 break
 
@@ -183,7 +231,8 @@ def run_video(
     the label of a frame progress bar (None: no bar). `on_record` sees each `FrameRecord` as it
     is registered; `wrap_frames` wraps the opened frame source (e.g. to time decoding).
     `rerender` False keeps the live canvas (no second read). `salvage` False lets Ctrl-C and
-    exceptions propagate with nothing written. `opener` opens the input (`io.open_frames`).
+    exceptions propagate with nothing written (and writes no checkpoints). `opener` opens the
+    input (`io.open_frames`).
 
     Raises `MosaicError` for an unusable input or output, and (after writing the report) when
     no frame could be placed on a mosaic that `outputs` asks for.
@@ -195,11 +244,22 @@ def run_video(
     interrupted, error = False, None
     with opener(video, step, max_frames) as source:
         info = source.info
+        if min(info.width, info.height) < MIN_FRAME_SIDE_PX:
+            log.warning(
+                "frames of %dx%d px are too small to register (the detectors need at least %d "
+                "px a side): expect few registered frames",
+                info.width, info.height, MIN_FRAME_SIDE_PX,
+            )  # fmt: skip
         made = viewer(info) if callable(viewer) else viewer
         builder = MosaicBuilder(config, extractor=extractor, viewer=made)
         frames = source if wrap_frames is None else wrap_frames(source)
+        every_s = config.pipeline.checkpoint_every_s if salvage else 0.0
+        checkpoints = _Checkpoints(builder, outputs, info, started, every_s)
+        total = expected_frames(info, step, max_frames)
         try:
-            _stream(builder, frames, expected_frames(info, step, max_frames), progress, on_record)
+            _stream(builder, frames, total, progress, on_record, checkpoints)
+            if checkpoints.written:  # a long run: keep what streaming gave while it finishes
+                checkpoints.write()
         except KeyboardInterrupt:
             if not salvage:
                 raise
@@ -257,10 +317,13 @@ def _write_outputs(
     outputs: Outputs,
     info: VideoInfo,
     started: float,
-    interrupted: bool,
-    error: str | None,
+    interrupted: bool = False,
+    error: str | None = None,
+    checkpoint: bool = False,
 ) -> dict[str, Any]:
-    """Segments, mosaic, thumbnail, then the report (its `summary.complete` marks them whole)."""
+    """Segments, mosaic, thumbnail, then the report (its `summary.complete` marks them whole).
+
+    `checkpoint`: the live state of a run still going (`summary.checkpoint`, never complete)."""
     report: dict[str, Any] = {
         "input": {**dataclasses.asdict(info), "path": str(info.path)},
         **result.report,
@@ -282,7 +345,8 @@ def _write_outputs(
         if outputs.thumbnail is not None:
             write_image(outputs.thumbnail, thumbnail(main.image))
             report["thumbnail"] = str(outputs.thumbnail)
-    summary["complete"] = not interrupted and error is None
+    summary["complete"] = not interrupted and error is None and not checkpoint
+    summary["checkpoint"] = checkpoint
     if not summary["complete"]:  # the live canvas and poses were kept
         summary["interrupted"] = interrupted
         if isinstance(summary.get("tracking"), dict):
@@ -292,7 +356,7 @@ def _write_outputs(
     summary["wall_time_s"] = round(time.perf_counter() - started, 3)
     if outputs.report is not None:
         write_json(outputs.report, report)
-    if outputs.mosaic is not None and main is None:
+    if outputs.mosaic is not None and main is None and not checkpoint:
         written = f" (report: {outputs.report})" if outputs.report is not None else ""
         raise MosaicError(f"no frame could be placed on the mosaic{written}")
     return report
