@@ -22,9 +22,10 @@ from typing import Any
 
 import numpy as np
 
+from glampoints.detector import WeightsError
 from mosaic.config import Config, with_overrides
-from mosaic.errors import MosaicError
-from mosaic.features import resolve_precision
+from mosaic.errors import ConfigError
+from mosaic.features import FeatureExtractor, resolve_precision
 from mosaic.io import Frame, sample_image_path
 from mosaic.pipeline import STAGES, FrameRecord
 from mosaic.runner import run_video
@@ -88,7 +89,13 @@ def _timed(frames: Iterable[Frame], out: list[float]) -> Iterator[Frame]:
         yield frame
 
 
-def run_variant(name: str, video: Path, config: Config, viewer: Viewer | None = None) -> BenchRow:
+def run_variant(
+    name: str,
+    video: Path,
+    config: Config,
+    viewer: Viewer | None = None,
+    extractor: FeatureExtractor | None = None,
+) -> BenchRow:
     """Process the whole video once (`runner.run_video`, as `mosaic build` does, without the
     re-render) and collect per-stage timings.
 
@@ -116,6 +123,7 @@ def run_variant(name: str, video: Path, config: Config, viewer: Viewer | None = 
     run = run_video(
         video,
         config,
+        extractor=extractor,
         viewer=viewer,
         on_record=on_record,
         wrap_frames=lambda source: _timed(source, decode),
@@ -155,22 +163,31 @@ def run_bench(
     viewer_factory: Callable[[Path], Viewer] | None = None,
     progress: Callable[[str], None] = lambda _: None,
     scales: Sequence[float] = (),
+    explicit: bool = True,
 ) -> list[BenchRow]:
     """Every detector on one synthetic video, then variants of the first one: GLAMpoints on the
     GPU (where CUDA is available) and in the other precision (where the CPU has bfloat16 in
     hardware), each detection scale in `scales`, without overlap, and with
-    the rerun recording."""
+    the rerun recording.
+
+    A detector that cannot be built (GLAMpoints without its weights, a descriptor it lacks)
+    raises `WeightsError` / `ConfigError` when `explicit` (the user named it), else it is
+    skipped with a warning. Errors while running are never swallowed."""
     config = config or Config()
     rows: list[BenchRow] = []
     with tempfile.TemporaryDirectory(prefix="mosaic-bench-") as tmp:
         video = make_video(Path(tmp), size, n_frames)
         for name in detectors:
             progress(name)
+            cfg = with_overrides(config, features={"detector": name})
             try:
-                cfg = with_overrides(config, features={"detector": name})
-                rows.append(run_variant(name, video, cfg))
-            except (MosaicError, ValueError) as exc:  # e.g. glampoints without weights
+                extractor = FeatureExtractor(cfg.features)
+            except (WeightsError, ConfigError) as exc:
+                if explicit:
+                    raise
                 log.warning("detector %s skipped: %s", name, exc)
+                continue
+            rows.append(run_variant(name, video, cfg, extractor=extractor))
         if not rows:
             return rows
         base = rows[0]
@@ -249,7 +266,7 @@ def format_table(rows: list[BenchRow], reference: str = "sift") -> str:
                 f"{r.peak_rss_mb:.0f}",
             ]
         )
-    widths = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(header)]
+    widths = [max([len(h), *(len(line[i]) for line in lines)]) for i, h in enumerate(header)]
     fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
     return "\n".join([fmt.format(*header), *(fmt.format(*line) for line in lines)])
 

@@ -9,38 +9,47 @@ re-rendering writes the live mosaic (exit 1).
 
 from __future__ import annotations
 
-import csv
-import json
-import logging
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
-from pathlib import Path
-from typing import Annotated, Any
+import sys
 
-import numpy as np
-import typer
-from tqdm.contrib.logging import logging_redirect_tqdm
+try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no traceback
+    import csv
+    import json
+    import logging
+    import re
+    import time
+    from collections.abc import Iterator
+    from contextlib import contextmanager
+    from pathlib import Path
+    from typing import Annotated, Any
 
-from glampoints.detector import WeightsError
-from mosaic.config import Config, load_config, with_overrides
-from mosaic.errors import InputError, MosaicError
-from mosaic.features import DETECTORS, FeatureExtractor
-from mosaic.io import (
-    VideoInfo,
-    check_output_path,
-    open_frames,
-    read_image,
-    write_image,
-)
-from mosaic.pipeline import register_pair
-from mosaic.refine import warp_check
-from mosaic.registration import MODELS
-from mosaic.runner import Outputs, run_video
-from mosaic.synth import SynthParams, pick_source, write_synthetic_video
-from mosaic.viz import VIEWER_MODES, RerunViewer, Viewer, make_viewer
+    import cv2
+    import numpy as np
+    import typer
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from glampoints.detector import WeightsError
+    from mosaic.config import Config, load_config, with_overrides
+    from mosaic.errors import InputError, MosaicError
+    from mosaic.features import DETECTORS, FeatureExtractor
+    from mosaic.io import (
+        VideoInfo,
+        check_output_path,
+        open_frames,
+        read_image,
+        write_image,
+    )
+    from mosaic.pipeline import register_pair
+    from mosaic.refine import warp_check
+    from mosaic.registration import MODELS
+    from mosaic.runner import Outputs, run_video
+    from mosaic.synth import SynthParams, pick_source, write_synthetic_video
+    from mosaic.viz import VIEWER_MODES, RerunViewer, Viewer, make_viewer
+except KeyboardInterrupt:
+    sys.stderr.write("interrupted\n")
+    raise SystemExit(130) from None
 
 PAIR_MODELS = (*MODELS, "quadratic")  # `register`: photographs of a curved retina
+BENCH_DETECTORS = "glampoints,sift,orb,akaze"
 
 app = typer.Typer(
     add_completion=False,
@@ -64,11 +73,45 @@ def _user_errors() -> Iterator[None]:
         raise typer.Exit(EXIT_USER_ERROR) from None
 
 
+class _OncePerKind(logging.Filter):
+    """Let the first warning of each kind through, a kind being its message with the numbers
+    left out ("frame 12 skipped: blurred ..."): per-frame problems are counted in the report."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._seen: set[tuple[str, str]] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno != logging.WARNING:
+            return True
+        kind = (record.name, re.sub(r"\d+(\.\d+)?", "#", record.getMessage()))
+        if kind in self._seen:
+            return False
+        self._seen.add(kind)
+        return True
+
+
 def _setup_logging(verbose: bool) -> None:
+    """Warnings (each kind once) or, with `verbose`, everything, on stderr; OpenCV's own log
+    lines only with `verbose` (our messages say what went wrong, on one line)."""
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    if verbose:
+        return
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    for handler in logging.getLogger().handlers:
+        plain = type(handler) is logging.StreamHandler  # ours, not a test's capture
+        if plain and not any(isinstance(f, _OncePerKind) for f in handler.filters):
+            handler.addFilter(_OncePerKind())
+
+
+def _require_detectors(config: Config, names: list[str]) -> None:
+    """Detectors the user named must load (GLAMpoints: its weights): else the error, not a
+    table without them."""
+    for name in names:
+        FeatureExtractor(with_overrides(config, features={"detector": name}).features)
 
 
 def _config(
@@ -465,8 +508,12 @@ def register(
                 else:
                     try:
                         result = _pair_result(*pair, config, extractor, model)
-                    except InputError as exc:  # a missing or unreadable image
+                    except MosaicError as exc:  # a missing or unreadable image
                         result = {**_pair_names(*pair), "status": "failed", "reason": str(exc)}
+                    except Exception as exc:  # one pair's failure is its line; the rest go on
+                        log.info("pair %s, %s failed", *pair, exc_info=True)
+                        reason = f"internal error: {_one_line(exc)}"
+                        result = {**_pair_names(*pair), "status": "failed", "reason": reason}
                 failed += result["status"] != "registered"
                 typer.echo(json.dumps(result))
             if failed:
@@ -558,6 +605,8 @@ def evaluate(
         for name in strategies:
             with_overrides(config, pipeline={"strategy": name})  # validates the name
         names = parse_detectors(detector)
+        if detector is not None:
+            _require_detectors(config, names)
         results, summary = run_video_evaluation(
             inputs,
             config,
@@ -577,8 +626,12 @@ def bench(
     size: Annotated[str, typer.Option(help="Frame size WIDTHxHEIGHT.")] = "660x350",
     frames: Annotated[int, typer.Option(min=10, help="Frames of the synthetic video.")] = 100,
     detector: Annotated[
-        str, typer.Option(help="Comma-separated detectors; the first is used for the variants.")
-    ] = "glampoints,sift,orb,akaze",
+        str | None,
+        typer.Option(
+            help="Comma-separated detectors; the first is used for the variants "
+            f"(default: {BENCH_DETECTORS}, skipping any that cannot run)."
+        ),
+    ] = None,
     config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
     rerun: Annotated[bool, typer.Option(help="Also measure the --rerun save overhead.")] = True,
     scales: Annotated[
@@ -601,7 +654,7 @@ def bench(
 
     _setup_logging(False)
     with _user_errors():
-        names = [name.strip() for name in detector.split(",") if name.strip()]
+        names = [name.strip() for name in (detector or BENCH_DETECTORS).split(",") if name.strip()]
         unknown = [name for name in names if name not in DETECTORS]
         if unknown:
             raise MosaicError(f"unknown detector(s) {', '.join(unknown)}")
@@ -626,7 +679,10 @@ def bench(
             factory,
             progress=lambda name: typer.echo(f"running {name} ...", err=True),
             scales=scale_values,
+            explicit=detector is not None,
         )
+        if not rows:
+            raise MosaicError(f"none of the detectors {', '.join(names)} could run")
         env = environment()
         if as_json:
             typer.echo(json.dumps({"environment": env, "rows": [r.__dict__ for r in rows]}))
@@ -644,6 +700,17 @@ def bench(
             typer.echo(profile_pipeline(names[0], _parse_size(size), frames, config, profile))
 
 
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
 def main() -> None:
-    """Console entry point."""
-    app()
+    """Console entry point. Ctrl-C anywhere exits 130 (typer); an unexpected exception (a bug)
+    prints one line and exits 1, its traceback logged at INFO (-v)."""
+    try:
+        app()
+    except Exception as exc:
+        log.info("internal error", exc_info=True)
+        typer.echo(f"error: internal error: {_one_line(exc)} (-v shows the traceback)", err=True)
+        raise SystemExit(EXIT_FAILED) from None
