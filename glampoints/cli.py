@@ -1,6 +1,8 @@
 """`glampoints` command line: detect keypoints, train the detector, export weights, benchmark.
 
-User errors (missing files, bad weights, bad folders) print one line on stderr and exit 2.
+User errors (missing files, bad weights, bad folders, a training that cannot go on) print one
+line on stderr and exit 2; Ctrl-C exits 130; an unexpected error prints one line and exits 1
+(the traceback with -v where the command has it, else in the log at INFO).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from glampoints.detector import DEFAULT_WEIGHTS, GlamPoints, WeightsError, bench
 from glampoints.synthetic import green_clahe
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+log = logging.getLogger("glampoints")
 
 
 def _fail(message: str) -> NoReturn:
@@ -49,29 +52,48 @@ def detect(
     preprocess: Annotated[
         bool, typer.Option(help="green channel + CLAHE first, as in training")
     ] = True,
+    fov_mask: Annotated[
+        bool,
+        typer.Option(
+            help="no keypoints on the dark border around the field of view (as the mosaic "
+            "pipeline: [preprocess] fov_threshold, fov_erode_px)"
+        ),
+    ] = True,
 ) -> None:
     """Detect GLAMpoints keypoints in one image."""
-    img = cv2.imread(str(image), cv2.IMREAD_COLOR)
-    if img is None:
-        _fail(f"cannot read image {image}")
+    # mosaic's I/O (atomic writes, output checks) and field-of-view mask, imported here: the
+    # CLI is where the packages meet
+    from mosaic.config import PreprocessConfig
+    from mosaic.errors import MosaicError
+    from mosaic.io import IMAGE_WRITE_SUFFIXES, check_output_path, read_image, write_image
+    from mosaic.preprocess import field_of_view_mask, to_gray
+
+    try:
+        img = read_image(image)
+        if output is not None:
+            output = check_output_path(output, IMAGE_WRITE_SUFFIXES)
+    except MosaicError as exc:
+        _fail(str(exc))
     grey = green_clahe(img) if preprocess else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    mask = None
+    if fov_mask:
+        pre = PreprocessConfig()
+        mask = field_of_view_mask(to_gray(img, True), pre.fov_threshold, pre.fov_erode_px)
     try:
         det = GlamPoints.from_pretrained(
             weights, nms_window_px=nms_window, max_keypoints=max_keypoints
         )
     except WeightsError as exc:
         _fail(str(exc))
-    kps = det.detect(grey)
+    kps = det.detect(grey, mask)
     if output is not None:
         canvas = img.copy()
         for x, y in np.round(kps.xy).astype(int).tolist():
             cv2.circle(canvas, (x, y), 3, (0, 255, 0), 1, lineType=cv2.LINE_AA)
         try:
-            ok = cv2.imwrite(str(output), canvas)
-        except cv2.error:
-            ok = False
-        if not ok:
-            _fail(f"cannot write {output} (missing folder or unknown image extension)")
+            write_image(output, canvas)
+        except MosaicError as exc:
+            _fail(str(exc))
     if as_json:
         typer.echo(json.dumps({"xy": kps.xy.tolist(), "scores": kps.scores.tolist()}))
     else:
@@ -213,16 +235,20 @@ def evaluate(
     # and glampoints never imports mosaic at module level, so it is imported here, lazily.
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    from mosaic.config import load_config
+    from mosaic.config import load_config, with_overrides
     from mosaic.datasets import open_dataset
     from mosaic.errors import MosaicError
     from mosaic.evaluate import format_pair_tables, parse_detectors, run_pair_evaluation
+    from mosaic.features import FeatureExtractor
 
     _setup_logging(verbose)
     try:
         with logging_redirect_tqdm():
             names = parse_detectors(detector)
             mosaic_config = load_config(config)
+            for name in names if detector is not None else ():  # named: must load, or an error
+                named = with_overrides(mosaic_config, features={"detector": name})
+                FeatureExtractor(named.features)
             data = open_dataset(dataset, fmt, seed=seed, pairs_per_image=pairs_per_image)
             _, summary = run_pair_evaluation(
                 data,
@@ -234,12 +260,18 @@ def evaluate(
                 explicit=detector is not None,
                 progress=True,
             )
-    except MosaicError as exc:
+    except (MosaicError, WeightsError) as exc:
         _fail(str(exc))
     typer.echo(format_pair_tables(summary))
     typer.echo(f"tables and plots: {out}")
 
 
 def main() -> None:
-    """Console-script entry point."""
-    app()
+    """Console-script entry point: an unexpected exception (a bug) is one line and exit 1."""
+    try:
+        app()
+    except Exception as exc:
+        log.info("internal error", exc_info=True)
+        text = (str(exc).strip().splitlines() or [""])[0]
+        typer.echo(f"error: internal error: {type(exc).__name__}: {text}", err=True)
+        raise SystemExit(1) from None

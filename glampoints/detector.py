@@ -382,9 +382,11 @@ def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, A
         raise WeightsError(f"GLAMpoints weights file not found: {path}")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise WeightsError(f"cannot read GLAMpoints weights {path}: {first[:200]}") from exc
+    except Exception as exc:  # torch's own text is long (pickling, weights_only): not for users
+        raise WeightsError(
+            f"cannot read GLAMpoints weights {path}: not a weights file (expected one written by "
+            "`glampoints export`, or a training checkpoint)"
+        ) from exc
     if isinstance(payload, dict) and isinstance(payload.get("state_dict"), dict):
         state, meta = payload["state_dict"], payload.get("meta") or {}
     elif isinstance(payload, dict) and isinstance(payload.get("model"), dict):

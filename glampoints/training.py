@@ -70,7 +70,8 @@ Pair = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 class TrainingError(ValueError):
-    """A training run cannot start or resume (bad folder, no images, checkpoint clash)."""
+    """A training run cannot start, resume or go on (bad folder, no images, a checkpoint or
+    metrics log that does not fit, a non-finite loss): its message is for the user."""
 
 
 @dataclass(frozen=True)
@@ -348,6 +349,46 @@ def _atomic_save(obj: Any, path: Path) -> None:
     tmp.replace(path)
 
 
+def _atomic_write_text(path: Path, text: str) -> None:
+    """Write via a temporary file beside `path`, then rename: a kill never leaves half a file."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(path)
+
+
+def read_metrics(path: Path) -> list[dict[str, Any]]:
+    """The records of a metrics.jsonl. A partial last line (a run killed while appending, with
+    an older version that appended in place) is dropped with a warning; a bad line before the
+    last is a corrupt log: TrainingError."""
+    if not path.exists():
+        return []
+    try:
+        lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrainingError(f"cannot read {path}: {exc}") from exc
+    records = []
+    for number, line in enumerate(lines, 1):
+        try:
+            record = json.loads(line)
+            if not isinstance(record, dict):
+                raise ValueError("not an object")
+        except ValueError:
+            if number == len(lines):
+                log.warning("%s: dropping its partial last line %d", path, number)
+                break
+            raise TrainingError(
+                f"{path} line {number} is not a JSON record: the log is corrupt "
+                "(move it away to resume without it)"
+            ) from None
+        records.append(record)
+    return records
+
+
+def write_metrics(path: Path, records: Sequence[dict[str, Any]]) -> None:
+    """metrics.jsonl rewritten whole, atomically (one JSON record per line)."""
+    _atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in records))
+
+
 def _rng_states() -> dict[str, Any]:
     name, keys, pos, has_gauss, cached = np.random.get_state()
     return {
@@ -476,9 +517,24 @@ def _rewrite_metrics(path: Path, epochs_done: int) -> None:
     """Drop metrics lines of epochs a resumed run will redo."""
     if not path.exists():
         return
-    lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
-    keep = [ln for ln in lines if json.loads(ln).get("epoch", 0) <= epochs_done]
-    path.write_text("".join(ln + "\n" for ln in keep))
+    records = read_metrics(path)
+    write_metrics(path, [r for r in records if r.get("epoch", 0) <= epochs_done])
+
+
+def _resume_state(ckpt: dict[str, Any], net: UNet, opt: torch.optim.Optimizer, path: Path) -> None:
+    """Load a checkpoint's network and optimiser; TrainingError when it does not fit."""
+    try:
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        _set_rng_states(ckpt["rng"])
+        int(ckpt["epoch"]), int(ckpt["step_in_epoch"]), int(ckpt["step"])
+        dict(ckpt["val_sift"])
+    except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:120]
+        raise TrainingError(
+            f"{path} does not fit this network or training code ({first}): "
+            "resume it with the version that wrote it, or start a new output folder"
+        ) from exc
 
 
 def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
@@ -543,12 +599,10 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
             raise TrainingError(f"--init {cfg.init} does not fit the UNet") from exc
         log.info("initialised from %s", cfg.init)
     if ckpt is not None:
-        net.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
+        _resume_state(ckpt, net, opt, last_path)
         epoch, step_in_epoch, step = ckpt["epoch"], ckpt["step_in_epoch"], ckpt["step"]
         best = tuple(ckpt.get("best", best))
         epoch_stats = dict(ckpt.get("epoch_stats", epoch_stats))
-        _set_rng_states(ckpt["rng"])
         _rewrite_metrics(metrics_path, epoch)
         val_sift = {k: float(v) for k, v in ckpt["val_sift"].items()}
         log.info("resumed at epoch %d step %d (global step %d)", epoch + 1, step_in_epoch, step)
@@ -558,8 +612,12 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
         log.info("SIFT validation: %s", _fmt(val_sift))
     git = git_hash()
     val_last: dict[str, float] = dict(ckpt.get("val_last", {})) if ckpt else {}
+    saved_step = step if ckpt is not None else None  # the step last.pt holds
 
     def save(path: Path) -> None:
+        nonlocal saved_step
+        if path == last_path:
+            saved_step = step
         _atomic_save(
             {
                 "model": net.state_dict(),
@@ -600,13 +658,20 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
             I1s, I2s, Hs = _batch(bases, items, cfg, epoch)
             rng = np.random.default_rng([cfg.seed, 2, epoch, step_in_epoch])
             out_step = glampoints_loss(net, I1s, I2s, Hs, cfg, rng)
+            loss = float(out_step["total"].detach())
+            if not math.isfinite(loss):  # stop before the step: the checkpoints stay good
+                bar.close()
+                kept = "no checkpoint written yet"
+                if saved_step is not None:
+                    kept = f"{last_path} holds step {saved_step}"
+                raise TrainingError(
+                    f"non-finite loss at step {step + 1} (epoch {epoch + 1}): training stopped, "
+                    f"{kept} (try a lower --lr)"
+                )
             opt.zero_grad(set_to_none=True)
             if out_step["mined"] > 0:
                 out_step["total"].backward()
                 opt.step()
-            loss = float(out_step["total"].detach())
-            if not math.isfinite(loss):
-                raise FloatingPointError(f"non-finite loss at step {step}")
             step_in_epoch += 1
             step += 1
             epoch_stats["loss"] += loss
@@ -633,8 +698,7 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
             "val": val,
             "val_sift": val_sift,
         }
-        with metrics_path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
+        write_metrics(metrics_path, [*read_metrics(metrics_path), record])
         log.info(
             "epoch %d: loss %.4f, train #TP %.1f, %.2f s/step | val GLAMpoints %s | SIFT %s",
             epoch + 1,

@@ -304,7 +304,7 @@ def test_cli_detect(tmp_path, detector):
     assert cv2.imread(str(out_png)).shape == (96, 128, 3)
 
     res = runner.invoke(app, ["detect", str(tmp_path / "missing.png")])
-    assert res.exit_code == 2 and "cannot read image" in res.stderr
+    assert res.exit_code == 2 and "image not found" in res.stderr
     assert res.stderr.strip().count("\n") == 0
     bad = tmp_path / "bad.pt"
     bad.write_text("not torch")
