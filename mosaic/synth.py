@@ -33,6 +33,7 @@ import dataclasses
 import json
 import logging
 from collections.abc import Iterator
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,16 @@ import cv2
 import numpy as np
 
 from mosaic.errors import ConfigError, InputError, OutputError
-from mosaic.io import IMAGE_READ_SUFFIXES, natural_key, open_frames, read_image, to_bgr8, write_json
+from mosaic.io import (
+    IMAGE_READ_SUFFIXES,
+    atomic_path,
+    natural_key,
+    open_frames,
+    read_image,
+    to_bgr8,
+    write_image,
+    write_json,
+)
 from mosaic.preprocess import estimate_fov_disc
 from mosaic.preprocess import fov_distance as _fov_distance
 
@@ -617,6 +627,21 @@ def _psnr_db(rendered: list[np.ndarray], video: Path) -> dict[str, Any]:
     return {"mean": float(np.mean(values)), "min": float(np.min(values)), "frames": len(values)}
 
 
+def _frame_folder(out: Path) -> None:
+    """Create the frame folder `out`, or accept an existing one without images: synth never
+    deletes or overwrites files it did not write (a folder of frames is a video to `build`)."""
+    try:
+        out.mkdir(exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create folder {out}: {exc.strerror or exc}") from exc
+    images = sorted(f.name for f in out.iterdir() if f.suffix.lower() in IMAGE_READ_SUFFIXES)
+    if images:
+        raise OutputError(
+            f"output folder {out} already holds images ({images[0]}, ...): "
+            "choose a new or empty folder"
+        )
+
+
 def write_synthetic_video(
     source_path: str | Path, out_path: str | Path, params: SynthParams
 ) -> Path:
@@ -626,7 +651,8 @@ def write_synthetic_video(
     and the ground truth's `source` names the image used. `out_path` ending in .mp4 (codec
     mp4v) or .avi (MJPG) gives a video file, whose compression loss against the rendered frames
     is measured (`psnr_db`: mean, min over the first 250 frames); a path without suffix gives a
-    folder of PNG frames `frame_0000.png`, ... (lossless). Returns the ground-truth path.
+    folder of PNG frames `frame_0000.png`, ... (lossless; a new folder or one without images).
+    Every file is written atomically. Returns the ground-truth path.
     """
     source_path = pick_source(source_path, params.seed)
     source = read_image(source_path)
@@ -640,41 +666,37 @@ def write_synthetic_video(
             f"unsupported video format '{out.suffix}' (use .mp4, .avi or a folder): {out}"
         )
     w, h = params.size
-    writer = None
-    if as_folder:
+    with ExitStack() as stack:
+        writer = None
+        if as_folder:
+            _frame_folder(out)
+        else:  # written beside it, renamed when whole: never half a video under its name
+            tmp = stack.enter_context(atomic_path(out))
+            fourcc = cv2.VideoWriter.fourcc(*_VIDEO_CODECS[suffix])
+            writer = cv2.VideoWriter(str(tmp), fourcc, params.fps, (w, h))
+            if not writer.isOpened():
+                raise OutputError(f"cannot open video writer for {out}")
+        frames_gt = []
+        rendered: list[np.ndarray] = []  # kept to measure the compression loss
         try:
-            out.mkdir(exist_ok=True)
-        except OSError as exc:
-            raise OutputError(f"cannot create folder {out}: {exc.strerror or exc}") from exc
-        for old in out.glob("frame_*.png"):
-            old.unlink()
-    else:
-        fourcc = cv2.VideoWriter.fourcc(*_VIDEO_CODECS[suffix])
-        writer = cv2.VideoWriter(str(out), fourcc, params.fps, (w, h))
-        if not writer.isOpened():
-            raise OutputError(f"cannot open video writer for {out}")
-
-    frames_gt = []
-    rendered: list[np.ndarray] = []  # kept to measure the compression loss
-    try:
-        for i, (frame, H) in enumerate(render_frames(source, params)):
+            for i, (frame, H) in enumerate(render_frames(source, params)):
+                if writer is not None:
+                    writer.write(frame)
+                    if i < _PSNR_MAX_FRAMES:
+                        rendered.append(frame)
+                else:
+                    write_image(out / f"frame_{i:04d}.png", frame)
+                frames_gt.append({"index": i, "H_frame_to_source": H})
+        finally:
             if writer is not None:
-                writer.write(frame)
-                if i < _PSNR_MAX_FRAMES:
-                    rendered.append(frame)
-            elif not cv2.imwrite(str(out / f"frame_{i:04d}.png"), frame):
-                raise OutputError(f"cannot write frame {i} to {out}")
-            frames_gt.append({"index": i, "H_frame_to_source": H})
-    finally:
-        if writer is not None:
-            writer.release()
-    if writer is not None and (not out.is_file() or out.stat().st_size == 0):
-        raise OutputError(f"video writer produced no file: {out}")
-    compression = (
-        {"codec": _VIDEO_CODECS[suffix], "psnr_db": _psnr_db(rendered, out)}
-        if writer is not None
-        else {"codec": "png"}
-    )
+                writer.release()
+        if writer is not None and (not tmp.is_file() or tmp.stat().st_size == 0):
+            raise OutputError(f"video writer produced no file: {out}")
+        compression = (
+            {"codec": _VIDEO_CODECS[suffix], "psnr_db": _psnr_db(rendered, tmp)}
+            if writer is not None
+            else {"codec": "png"}
+        )
 
     gt = {
         "source": str(source_path),
