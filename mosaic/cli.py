@@ -659,6 +659,8 @@ def bench(
         if unknown:
             raise MosaicError(f"unknown detector(s) {', '.join(unknown)}")
         config = load_config(config_path)
+        if detector is not None:  # before the video is made: named detectors must load
+            _require_detectors(config, names)
         try:
             scale_values = [float(v) for v in scales.split(",") if v.strip()]
         except ValueError:

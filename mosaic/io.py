@@ -340,14 +340,16 @@ def quiet_stderr() -> Iterator[None]:
     """Silence the process's stderr (file descriptor 2) for a moment: OpenCV and ffmpeg print
     their own lines there ("moov atom not found") when probing a file, before our one-line
     error. Python's own stderr is flushed first; the descriptor is restored on exit."""
+    fd = 2  # where native code writes, whatever sys.stderr is
     try:
-        fd = sys.stderr.fileno()
-    except (AttributeError, OSError, ValueError):  # no real stderr (captured): nothing to hide
+        os.fstat(fd)
+    except OSError:  # no stderr at all: nothing to hide
         fd = None
     if fd is None or getattr(_native_stderr, "kept", False):
         yield
         return
-    sys.stderr.flush()
+    with contextlib.suppress(AttributeError, OSError, ValueError):
+        sys.stderr.flush()
     saved = os.dup(fd)
     try:
         with open(os.devnull, "wb") as devnull:
@@ -431,7 +433,11 @@ def check_output_path(
         raise OutputError(f"output folder does not exist: {parent}")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"output folder is not writable: {parent}")
-    if p.is_dir():
+    try:
+        is_dir = p.is_dir()
+    except OSError as exc:  # e.g. a name longer than the file system takes
+        raise OutputError(f"cannot write {p}: {exc.strerror or exc}") from exc
+    if is_dir:
         raise OutputError(f"output path is a folder, expected a file: {p}")
     allowed = IMAGE_WRITE_SUFFIXES | {".json"} if suffixes is None else suffixes
     suffix = p.suffix.lower()
