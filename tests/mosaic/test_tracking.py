@@ -86,7 +86,6 @@ def test_loop_closure_reduces_drift_at_the_end_of_a_loop(fundus, trip):
     ]
     video, video_truth = frames + back, truth + back_truth
     chain = _errors_to_first(_run(_config("chain"), video), video_truth)
-    without = _errors_to_first(_run(_config("keyframes", loop_closure=False), video), video_truth)
     keyframes_run = _run(_config("keyframes"), video)
     keyframes = _errors_to_first(keyframes_run, video_truth)
     tracking = keyframes_run.report["summary"]["tracking"]
@@ -95,14 +94,33 @@ def test_loop_closure_reduces_drift_at_the_end_of_a_loop(fundus, trip):
     assert keyframes[-1] < 3.0
     assert keyframes[-1] < chain[-1]
     assert keyframes.mean() < chain.mean()
-    assert keyframes.mean() <= without.mean() + 0.1
+    # SIFT's links are sub-pixel here: little drift to remove. ORB's links drift (measured:
+    # 3.0 px mean, 1.6 px at the end of the loop without loop closure; 2.3 and 0.9 with it):
+    # the closures must remove a real share of the drift against the truth.
+    orb = {"detector": "orb", "max_keypoints": 600}
+    without = _run(with_overrides(_config("keyframes", loop_closure=False), features=orb), video)
+    closed = _run(with_overrides(_config("keyframes"), features=orb), video)
+    assert closed.report["summary"]["tracking"]["loop_closures"] >= 1
+    drift_without = _errors_to_first(without, video_truth)
+    drift_with = _errors_to_first(closed, video_truth)
+    assert np.isfinite(drift_with).all() and np.isfinite(drift_without).all()
+    assert drift_without.mean() > 2.0  # the premise: there is drift to remove
+    assert drift_with[-1] < 0.75 * drift_without[-1], (drift_with[-1], drift_without[-1])
+    assert drift_with.mean() < 0.85 * drift_without.mean(), (drift_with, drift_without)
 
 
-def test_refinement_lowers_the_graph_residual(trip):
-    frames, _ = trip
-    result = _run(_config("keyframes"), frames + frames[::-1])
+def test_refinement_lowers_the_graph_residual_and_the_error_to_the_truth(trip):
+    frames, truth = trip
+    video, video_truth = frames + frames[::-1], truth + truth[::-1]
+    result = _run(_config("keyframes"), video)
     refinement = result.report["summary"]["tracking"]["refinement"][0]
-    assert refinement["rms_after_px"] <= refinement["rms_before_px"]
+    assert refinement["rms_after_px"] < refinement["rms_before_px"]
+    # the refined poses against the truth (measured: 0.25 px mean, 0.62 max; unrefined
+    # 0.29 and 0.75)
+    refined = _errors_to_first(result, video_truth)
+    unrefined = _errors_to_first(_run(_config("keyframes", refine=False), video), video_truth)
+    assert refined.mean() < 0.4 and refined.max() < 1.0, refined
+    assert refined.mean() < unrefined.mean() and refined.max() < unrefined.max()
 
 
 def test_gating_skips_blurred_and_dark_frames(trip):
