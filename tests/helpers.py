@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import cv2
 import numpy as np
 
@@ -69,3 +71,39 @@ def build_from_folder(folder, config):
                 yield frame.index, frame.image
 
     return builder.finish(reread=reread)
+
+
+def chattr(path, flag: str) -> bool:
+    """`chattr FLAG PATH` (e.g. "+i": immutable); False where the tool or the right is missing."""
+    import shutil
+    import subprocess
+
+    tool = shutil.which("chattr")
+    if tool is None:
+        return False
+    return subprocess.run([tool, flag, str(path)], capture_output=True).returncode == 0
+
+
+@contextlib.contextmanager
+def locked(path):
+    """`path` (a file or folder) made unwritable for the duration: no write permission for a
+    user; immutable for root, whom permissions do not stop. Fails (never skips) where neither
+    is possible, so an "unwritable" test always runs."""
+    import os
+
+    import pytest
+
+    if os.geteuid() != 0:
+        mode = path.stat().st_mode
+        path.chmod(0o500 if path.is_dir() else 0o444)
+        try:
+            yield path
+        finally:
+            path.chmod(mode)
+        return
+    if not chattr(path, "+i"):
+        pytest.fail("running as root without chattr +i: cannot make a path unwritable")
+    try:
+        yield path
+    finally:
+        chattr(path, "-i")

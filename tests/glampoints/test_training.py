@@ -20,7 +20,9 @@ from glampoints.training import (
     TrainConfig,
     TrainingError,
     config_from_dict,
+    evaluate_glampoints,
     evaluate_pairs,
+    evaluate_sift,
     export_weights,
     glampoints_loss,
     list_images,
@@ -167,8 +169,17 @@ def test_smoke_run_checkpoint_resume_and_export(tmp_path, data):
     lines = (out / "metrics.jsonl").read_text().splitlines()
     assert len(lines) == 1
     rec = json.loads(lines[0])
-    assert rec["epoch"] == 1 and np.isfinite(rec["train_loss"])
-    assert 0.0 <= rec["val"]["acceptable"] <= 1.0 and "matching_score" in rec["val_sift"]
+    assert rec["epoch"] == 1 and np.isfinite(rec["train_loss"]) and rec["train_loss"] > 0
+    # the logged validation, recomputed independently: best.pt holds the epoch-1 network
+    cfg = _cfg(data, out, max_steps=3)
+    pairs = validation_pairs(cfg)
+    net = UNet().to(memory_format=torch.channels_last)
+    net.load_state_dict(load_checkpoint(out / "best.pt")["model"])
+    assert rec["val"] == pytest.approx(evaluate_glampoints(net, pairs, cfg), nan_ok=True)
+    assert rec["val_sift"] == pytest.approx(evaluate_sift(pairs, cfg), nan_ok=True)
+    assert rec["val"]["pairs"] == len(pairs) == 2  # 1 validation image x 2 pairs
+    shares = [rec["val"][k] * len(pairs) for k in ("acceptable", "inaccurate", "failed")]
+    assert shares == [round(v) for v in shares] and sum(shares) == len(pairs)
 
     with pytest.raises(TrainingError, match="--resume"):
         train(_cfg(data, out, max_steps=5))

@@ -10,7 +10,6 @@ one `error:` / `interrupted` line, never a traceback) and what survives on disk.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
@@ -41,6 +40,7 @@ from mosaic.runner import Outputs, run_video
 from mosaic.synth import SynthParams, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 from tests.glampoints.conftest import vessel_image
+from tests.helpers import locked
 
 MOSAIC = Path(sys.executable).with_name("mosaic")  # the console script of this environment
 N_FRAMES = 80
@@ -350,34 +350,6 @@ def test_small_frames_and_odd_sizes_are_warned_once_each(tmp_path):
 # --------------------------------------------------------------------------------------------
 
 
-def _chattr(path: Path, flag: str) -> bool:
-    tool = shutil.which("chattr")
-    if tool is None:
-        return False
-    done = subprocess.run([tool, flag, str(path)], capture_output=True)
-    return done.returncode == 0
-
-
-@contextlib.contextmanager
-def _locked(path: Path) -> Iterator[Path]:
-    """`path` made unwritable: no write permission (a user), else immutable (root, which
-    permissions do not stop)."""
-    if os.geteuid() != 0:
-        mode = path.stat().st_mode
-        path.chmod(0o500 if path.is_dir() else 0o444)
-        try:
-            yield path
-        finally:
-            path.chmod(mode)
-        return
-    if not _chattr(path, "+i"):
-        pytest.fail("root without chattr +i: cannot make an unwritable path for this test")
-    try:
-        yield path
-    finally:
-        _chattr(path, "-i")
-
-
 def _cannot_create_in(folder: Path) -> bool:
     try:
         (folder / "probe.png").touch()
@@ -390,7 +362,7 @@ def _cannot_create_in(folder: Path) -> bool:
 def test_an_unwritable_folder_fails_before_the_first_frame(short_clip, tmp_path):
     folder = tmp_path / "locked"
     folder.mkdir()
-    with _locked(folder):
+    with locked(folder):
         assert _cannot_create_in(folder)  # the premise holds, as root too
         result = runner.invoke(app, ["build", str(short_clip), "-o", str(folder / "m.png")])
         line = _one_error_line(result)
@@ -403,7 +375,7 @@ def test_an_unwritable_report_fails_before_the_mosaic_is_written(short_clip, tmp
     folder = tmp_path / "locked"
     folder.mkdir()
     out = tmp_path / "m.png"
-    with _locked(folder):
+    with locked(folder):
         args = ["build", str(short_clip), "-o", str(out), "--report", str(folder / "r.json")]
         _one_error_line(runner.invoke(app, args))
     assert not out.exists()
@@ -412,7 +384,7 @@ def test_an_unwritable_report_fails_before_the_mosaic_is_written(short_clip, tmp
 def test_a_read_only_or_immutable_file_fails_before_the_first_frame(short_clip, tmp_path):
     out = tmp_path / "m.png"
     out.write_bytes(b"an earlier mosaic")
-    with _locked(out):
+    with locked(out):
         line = _one_error_line(runner.invoke(app, ["build", str(short_clip), "-o", str(out)]))
     assert str(out) in line
     assert out.read_bytes() == b"an earlier mosaic"  # untouched, and not a 0-byte file

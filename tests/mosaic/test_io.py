@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from pathlib import Path
 
 import cv2
@@ -21,6 +20,7 @@ from mosaic.io import (
     write_image,
     write_json,
 )
+from tests.helpers import locked
 
 W, H = 64, 48
 
@@ -213,11 +213,17 @@ def test_check_output_path(tmp_path):
     assert check_output_path(tmp_path / "report.json") == tmp_path / "report.json"
     with pytest.raises(OutputError):
         check_output_path(tmp_path / "report.json", suffixes=frozenset({".png"}))
-    if os.geteuid() != 0:  # root ignores permissions
-        locked = tmp_path / "locked"
-        locked.mkdir(mode=0o500)
-        with pytest.raises(OutputError, match="not writable"):
-            check_output_path(locked / "mosaic.png")
+    folder = tmp_path / "locked"
+    folder.mkdir()
+    with locked(folder), pytest.raises(OutputError, match="not writable"):
+        check_output_path(folder / "mosaic.png")
+    earlier = tmp_path / "earlier.png"
+    earlier.write_bytes(b"kept")
+    with locked(earlier), pytest.raises(OutputError, match=str(earlier)):
+        check_output_path(earlier)  # read-only (a user) or immutable (root): refused now
+    assert earlier.read_bytes() == b"kept"
+    with pytest.raises(OutputError, match="cannot write"):
+        check_output_path(tmp_path / ("m" * 300 + ".png"))  # a name too long, for anyone
 
 
 def test_write_json_round_trip_with_numpy_values(tmp_path):
