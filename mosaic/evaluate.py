@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import logging
 import math
@@ -53,7 +54,7 @@ from mosaic.fidelity import (
     oracle_fidelity,
     prepare_source,
 )
-from mosaic.io import read_image, write_json
+from mosaic.io import atomic_path, read_image, write_json, write_text
 from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicResult
 from mosaic.preprocess import field_of_view_mask, prepare, scale_matrix, to_gray
@@ -439,15 +440,12 @@ def _prepare_out(out_dir: str | Path) -> Path:
 def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
     """Rows of dicts as CSV (columns: union of keys in first-seen order; nested values as JSON)."""
     columns = list(dict.fromkeys(k for row in rows for k in row))
-    try:
-        with path.open("w", newline="", encoding="utf-8") as fh:
-            writer = csv.DictWriter(fh, fieldnames=columns, restval="")
-            writer.writeheader()
-            for row in rows:
-                writer.writerow({k: _csv_value(v) for k, v in row.items()})
-    except OSError as exc:
-        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from exc
-    return path
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns, restval="")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: _csv_value(v) for k, v in row.items()})
+    return write_text(path, text.getvalue())  # atomic: readers never see half a table
 
 
 def _csv_value(value: Any) -> Any:
@@ -495,7 +493,8 @@ def plot_pairs(
     ax.legend(fontsize=8)
     fig.tight_layout()
     curve = out / "cumulative_error.png"
-    fig.savefig(curve, dpi=120)
+    with atomic_path(curve) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(6.4, 0.5 * len(summary) + 1.4))
@@ -512,7 +511,8 @@ def plot_pairs(
     ax.legend(fontsize=8, ncol=3, loc="lower center", bbox_to_anchor=(0.5, 1.0))
     fig.tight_layout()
     bars = out / "success_rates.png"
-    fig.savefig(bars, dpi=120)
+    with atomic_path(bars) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
     return [curve, bars]
 
@@ -1092,7 +1092,8 @@ def plot_videos(
     ax.invert_yaxis()
     fig.tight_layout()
     bars = out / "video_frames_until_failure.png"
-    fig.savefig(bars, dpi=120)
+    with atomic_path(bars) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
@@ -1115,7 +1116,8 @@ def plot_videos(
         ax.legend(fontsize=8)
     fig.tight_layout()
     curve = out / "video_error.png"
-    fig.savefig(curve, dpi=120)
+    with atomic_path(curve) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
     return [bars, curve]
 
