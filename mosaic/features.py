@@ -239,6 +239,25 @@ DETECTORS: dict[str, Callable[[FeaturesConfig], Detector]] = {
 }
 
 
+MIN_LOCAL_CONTRAST = 1.0  # grey levels (sd) a keypoint's neighbourhood needs to be described
+CONTRAST_WINDOW_PX = 31
+
+
+def _textured(gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Points whose neighbourhood has some contrast. On a flat patch (a black or blank frame)
+    every descriptor is the same quantisation noise and all of them match each other, which
+    would "register" two blank images with the identity."""
+    if len(xy) == 0:
+        return np.zeros(0, bool)
+    g = gray.astype(np.float32)
+    k = (CONTRAST_WINDOW_PX, CONTRAST_WINDOW_PX)
+    var = cv2.blur(g * g, k) - cv2.blur(g, k) ** 2
+    h, w = gray.shape
+    ix = np.clip(np.rint(xy[:, 0]).astype(int), 0, w - 1)
+    iy = np.clip(np.rint(xy[:, 1]).astype(int), 0, h - 1)
+    return var[iy, ix] >= MIN_LOCAL_CONTRAST**2
+
+
 def make_detector(config: FeaturesConfig) -> Detector:
     """Build the configured detector by name."""
     try:
@@ -304,6 +323,13 @@ class FeatureExtractor:
         """Attach upright root-SIFT descriptors to detected keypoints (no-op when native)."""
         if detected.descriptors.shape[1] > 0 or self.config.descriptor == "native":
             return detected
+        textured = _textured(prepared.gray, detected.xy)
+        detected = Features(
+            detected.xy[textured],
+            detected.scores[textured],
+            detected.sizes[textured],
+            detected.descriptors[textured],
+        )
         desc = upright_rootsift(prepared.gray, detected.xy, detected.sizes)
         return Features(detected.xy, detected.scores, detected.sizes, desc)
 

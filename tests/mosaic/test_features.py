@@ -197,3 +197,19 @@ def test_register_pair_of_large_images_answers_in_full_size_pixels(pair):
     reg = register_pair(big_a, big_b, config, FeatureExtractor(config.features))
     assert reg.ok, reg.reason
     assert corner_error(reg.H_cur_to_prev, H_big, (960, 640)) < 4.0  # 2 px at the small size
+
+
+@pytest.mark.parametrize("name", ["glampoints", "random-grid"])
+def test_blank_images_do_not_register(fundus, name):
+    """A flat image has nothing to match: two of them (or one and a retina) must fail, not
+    "register" with the identity through their identical descriptors of quantisation noise."""
+    config = with_overrides(Config(), features={"detector": name})
+    extractor = FeatureExtractor(config.features)
+    black = np.zeros((300, 300, 3), np.uint8)
+    grey = np.full((300, 300, 3), 128, np.uint8)
+    assert len(extractor(prepare(black, config.preprocess))) == 0
+    assert len(extractor(prepare(grey, config.preprocess))) == 0
+    for a, b in ((black, black), (grey, black), (fundus, grey)):
+        assert not register_pair(a, b, config, extractor).ok
+    # the retina itself keeps its points
+    assert len(extractor(prepare(fundus, config.preprocess))) > 100
