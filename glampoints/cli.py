@@ -7,18 +7,23 @@ line on stderr and exit 2; Ctrl-C exits 130; an unexpected error prints one line
 
 from __future__ import annotations
 
-import json
-import logging
 import sys
-from pathlib import Path
-from typing import Annotated, NoReturn
 
-import cv2
-import numpy as np
-import typer
+try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no traceback
+    import json
+    import logging
+    from pathlib import Path
+    from typing import Annotated, NoReturn
 
-from glampoints.detector import DEFAULT_WEIGHTS, GlamPoints, WeightsError, benchmark
-from glampoints.synthetic import green_clahe
+    import cv2
+    import numpy as np
+    import typer
+
+    from glampoints.detector import DEFAULT_WEIGHTS, GlamPoints, WeightsError, benchmark
+    from glampoints.synthetic import green_clahe
+except KeyboardInterrupt:
+    sys.stderr.write("interrupted\n")
+    raise SystemExit(130) from None
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 log = logging.getLogger("glampoints")

@@ -72,9 +72,15 @@ def short_clip(tmp_path_factory) -> Path:
 class Running:
     """A started command whose stdout / stderr are read as they come (progress bars too)."""
 
-    def __init__(self, args: list[str], inject: str | None = None, cwd: Path | None = None):
+    def __init__(
+        self,
+        args: list[str],
+        inject: str | None = None,
+        cwd: Path | None = None,
+        program: Path = MOSAIC,
+    ):
         if inject is None:
-            command = [str(MOSAIC), *args]
+            command = [str(program), *args]
         else:  # the same entry point, with a fault patched in first
             script = f"{inject}\nimport sys\nfrom mosaic.cli import main\n"
             script += f"sys.argv = {['mosaic', *args]!r}\nmain()\n"
@@ -182,6 +188,16 @@ def test_ctrl_c_at_start_up_exits_130_without_a_traceback(short_clip, tmp_path):
     assert run.finish() == 130, run.stderr
     assert run.messages() == ["interrupted"], run.stderr
     assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="reads /proc/PID/maps")
+def test_ctrl_c_while_glampoints_starts_exits_130_without_a_traceback(tmp_path):
+    program = MOSAIC.with_name("glampoints")
+    run = Running(["detect", str(tmp_path / "none.png")], program=program)
+    run.wait_for(lambda: _torch_loaded(run.proc.pid), timeout_s=60)
+    run.proc.send_signal(signal.SIGINT)
+    assert run.finish() == 130, run.stderr
+    assert run.messages() == ["interrupted"], run.stderr
 
 
 def test_ctrl_c_while_registering_writes_the_frames_so_far(long_clip, tmp_path):
