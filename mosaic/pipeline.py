@@ -597,6 +597,11 @@ def register_pair(
     S_fixed, S_moving = (np.eye(3) if S is None else S for S in (S_fixed, S_moving))
     scales = (float(S_moving[0, 0]), float(S_fixed[0, 0]))
     reg = dataclasses.replace(reg, working_scales=scales)
+    blank = [name for name, f in (("fixed", features_fixed), ("moving", features_moving)) if not f]
+    if blank:  # say why: a blank, black or out-of-focus image has nothing to match
+        images = " and ".join(blank) + (" images" if len(blank) > 1 else " image")
+        reason = f"no textured keypoints in the {images}"
+        return dataclasses.replace(reg, H_cur_to_prev=None, reason=reason)
     if reg.H_cur_to_prev is None:
         return reg
     H = np.linalg.inv(S_fixed) @ reg.H_cur_to_prev @ S_moving

@@ -209,7 +209,13 @@ def test_blank_images_do_not_register(fundus, name):
     grey = np.full((300, 300, 3), 128, np.uint8)
     assert len(extractor(prepare(black, config.preprocess))) == 0
     assert len(extractor(prepare(grey, config.preprocess))) == 0
-    for a, b in ((black, black), (grey, black), (fundus, grey)):
-        assert not register_pair(a, b, config, extractor).ok
+    for a, b, blank in (
+        (black, black, "fixed and moving images"),
+        (grey, black, "fixed and moving images"),
+        (fundus, grey, "moving image"),
+    ):
+        registration = register_pair(a, b, config, extractor)
+        assert not registration.ok and registration.H_cur_to_prev is None
+        assert registration.reason == f"no textured keypoints in the {blank}"
     # the retina itself keeps its points
     assert len(extractor(prepare(fundus, config.preprocess))) > 100
