@@ -41,7 +41,7 @@ from urllib.parse import quote
 
 from mosaic.config import Config, load_config
 from mosaic.errors import InputError, MosaicError, OutputError
-from mosaic.io import keep_native_stderr, natural_key, write_bytes, write_json
+from mosaic.io import keep_native_stderr, natural_key, write_json, write_text
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 
 log = logging.getLogger(__name__)
@@ -715,10 +715,10 @@ def write_summary(out: Path, rows: list[dict[str, Any]], meta: dict[str, Any]) -
     writer.writeheader()
     for row in rows:
         writer.writerow({k: "" if row.get(k) is None else row[k] for k in COLUMNS})
-    write_bytes(out / "summary.csv", buffer.getvalue().encode("utf-8"))
+    write_text(out / "summary.csv", buffer.getvalue())
     counts = {s: sum(r["status"] == s for r in rows) for s in (OK, FAILED, INTERRUPTED, NOT_RUN)}
     write_json(out / "summary.json", {"meta": meta, "counts": counts, "videos": rows})
-    write_bytes(out / "index.html", render_index(rows, meta, counts).encode("utf-8"))
+    write_text(out / "index.html", render_index(rows, meta, counts))
 
 
 _STATUS_ORDER = {FAILED: 0, INTERRUPTED: 1, NOT_RUN: 2, OK: 3}

@@ -493,34 +493,16 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 def write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write `data` atomically (temporary file in the same folder, then `os.replace`)."""
+    """Write `data` atomically (`atomic_path`); OutputError on failure."""
     p = Path(path).expanduser()
-    _atomic_write_bytes(p, data)
+    with atomic_path(p) as tmp:
+        tmp.write_bytes(data)
     return p
 
 
 def write_text(path: str | Path, text: str) -> Path:
     """Write UTF-8 text atomically; OutputError on failure."""
     return write_bytes(path, text.encode("utf-8"))
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write via a temporary file in the same folder and os.replace (no half-written outputs)."""
-    if not path.parent.is_dir():
-        raise OutputError(f"output folder does not exist: {path.parent}")
-    tmp_name = None
-    try:
-        with tempfile.NamedTemporaryFile(
-            dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False
-        ) as tmp:
-            tmp_name = tmp.name
-            tmp.write(data)
-        os.chmod(tmp_name, 0o666 & ~_UMASK)
-        os.replace(tmp_name, path)
-    except OSError as exc:
-        if tmp_name is not None and os.path.exists(tmp_name):
-            os.unlink(tmp_name)
-        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from exc
 
 
 def write_image(path: str | Path, image: np.ndarray) -> Path:
@@ -532,7 +514,7 @@ def write_image(path: str | Path, image: np.ndarray) -> Path:
         raise OutputError(f"cannot encode image as '{p.suffix}': {p}") from exc
     if not ok:
         raise OutputError(f"cannot encode image as '{p.suffix}': {p}")
-    _atomic_write_bytes(p, encoded.tobytes())
+    write_bytes(p, encoded.tobytes())
     return p
 
 
@@ -553,7 +535,7 @@ def write_json(path: str | Path, obj: Any) -> Path:
     """Write `obj` as indented JSON atomically (numpy values converted); OutputError on failure."""
     p = Path(path).expanduser()
     text = json.dumps(obj, default=_json_default, indent=2)
-    _atomic_write_bytes(p, (text + "\n").encode("utf-8"))
+    write_text(p, text + "\n")
     return p
 
 
