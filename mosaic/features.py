@@ -323,15 +323,9 @@ class FeatureExtractor:
         """Attach upright root-SIFT descriptors to detected keypoints (no-op when native)."""
         if detected.descriptors.shape[1] > 0 or self.config.descriptor == "native":
             return detected
-        textured = _textured(prepared.gray, detected.xy)
-        detected = Features(
-            detected.xy[textured],
-            detected.scores[textured],
-            detected.sizes[textured],
-            detected.descriptors[textured],
-        )
-        desc = upright_rootsift(prepared.gray, detected.xy, detected.sizes)
-        return Features(detected.xy, detected.scores, detected.sizes, desc)
+        keep = _textured(prepared.gray, detected.xy)
+        xy, scores, sizes = detected.xy[keep], detected.scores[keep], detected.sizes[keep]
+        return Features(xy, scores, sizes, upright_rootsift(prepared.gray, xy, sizes))
 
     def __call__(self, prepared: Prepared) -> Features:
         return self.describe(prepared, self.detect(prepared))
