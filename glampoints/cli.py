@@ -243,7 +243,12 @@ def evaluate(
     from mosaic.config import load_config, with_overrides
     from mosaic.datasets import open_dataset
     from mosaic.errors import MosaicError
-    from mosaic.evaluate import format_pair_tables, parse_detectors, run_pair_evaluation
+    from mosaic.evaluate import (
+        format_pair_tables,
+        parse_detectors,
+        run_pair_evaluation,
+        summarize_models,
+    )
     from mosaic.features import FeatureExtractor
 
     _setup_logging(verbose)
@@ -255,7 +260,7 @@ def evaluate(
                 named = with_overrides(mosaic_config, features={"detector": name})
                 FeatureExtractor(named.features)
             data = open_dataset(dataset, fmt, seed=seed, pairs_per_image=pairs_per_image)
-            _, summary = run_pair_evaluation(
+            results, summary = run_pair_evaluation(
                 data,
                 mosaic_config,
                 names,
@@ -267,7 +272,7 @@ def evaluate(
             )
     except (MosaicError, WeightsError) as exc:
         _fail(str(exc))
-    typer.echo(format_pair_tables(summary))
+    typer.echo(format_pair_tables(summary, summarize_models(results)))
     typer.echo(f"tables and plots: {out}")
 
 

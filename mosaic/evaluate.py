@@ -43,7 +43,7 @@ from tqdm import tqdm
 
 from glampoints import metrics as gm
 from glampoints.detector import WeightsError
-from mosaic.config import Config, with_overrides
+from mosaic.config import Config, RegistrationConfig, with_overrides
 from mosaic.datasets import FIRE_CATEGORIES, Pair, PairDataset
 from mosaic.errors import ConfigError, InputError, OutputError
 from mosaic.features import DETECTORS, FeatureExtractor
@@ -59,8 +59,9 @@ from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicResult
 from mosaic.preprocess import field_of_view_mask, prepare, scale_matrix, to_gray
 from mosaic.quality import spearman
+from mosaic.refine import fit_pair
 from mosaic.registration import MODELS as MOTION_MODELS
-from mosaic.registration import estimate_homography
+from mosaic.registration import apply_homography, apply_quadratic, estimate_homography
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 from mosaic.runner import reread_frames as _reread
 from mosaic.synth import corner_error, gt_path_for, load_ground_truth, relative_homographies
@@ -71,6 +72,14 @@ EPS_PX = 3.0  # correctness radius of a keypoint / match (paper: 3 px)
 FIRE_SCALE = 0.15  # the paper's FIRE protocol: 2912 px images downscaled to 15 % for detection
 ACCURATE_CORNER_ERROR_PX = 10.0  # a video frame further than this from the truth is a failure
 CLASSES = ("failed", "inaccurate", "acceptable")
+# FIRE pairs: the final fit of `mosaic register` (`refine.fit_pair`) on the coarse inliers, per
+# motion model and with or without the coarse-to-fine refinement: name -> (model, refined)
+FIRE_VARIANTS = {
+    "hom": ("homography", False),
+    "hom+refine": ("homography", True),
+    "quad": ("quadratic", False),
+    "quad+refine": ("quadratic", True),
+}
 
 
 # --------------------------------------------------------------------------------------------
@@ -144,6 +153,11 @@ class PairResult:
     error_px: float  # FIRE protocol: mean point error at full resolution; inf when failed
     time_ms: float  # detection + description of both images
     H_est_1_to_2: list[list[float]] | None = field(default=None, repr=False)  # full resolution
+    coarse_s: float = math.nan  # pre-processing, detection, description, matching and RANSAC
+    # FIRE pairs (control points): per FIRE_VARIANTS name, the FIRE error (inf when failed) and
+    # the seconds of its final fit (to add to coarse_s)
+    variant_error_px: dict[str, float] = field(default_factory=dict)
+    variant_s: dict[str, float] = field(default_factory=dict)
 
 
 def _resize(image: np.ndarray, scale: float) -> np.ndarray:
@@ -231,11 +245,15 @@ def evaluate_pair(
     time_ms = (time.perf_counter() - start) * 1e3
     shape1, shape2 = prep1.gray.shape, prep2.gray.shape
 
+    matches = match_descriptors(f1.descriptors, f2.descriptors, config.matching)
+    xy1_m, xy2_m = f1.xy[matches.idx_a], f2.xy[matches.idx_b]
+    paper_rules = dataclasses.replace(config.registration, min_inliers=gm.MIN_MATCHES)
+    reg = estimate_homography(xy1_m, xy2_m, paper_rules)
+    coarse_s = time.perf_counter() - start
+
     H_gt_full = pair.H_1_to_2
     if H_gt_full is None and pair.control_points is not None:
         H_gt_full = fit_homography(pair.control_points[:, :2], pair.control_points[:, 2:])
-    matches = match_descriptors(f1.descriptors, f2.descriptors, config.matching)
-    xy1_m, xy2_m = f1.xy[matches.idx_a], f2.xy[matches.idx_b]
 
     rep = ms = auc = cover = float("nan")
     n_tp = 0
@@ -254,10 +272,22 @@ def evaluate_pair(
             correct = gm.true_positive_mask(f1.xy[in1], f2.xy[in2][nearest], H, EPS_PX)
             auc = gm.nndr_auc(ratio, correct)
 
-    paper_rules = dataclasses.replace(config.registration, min_inliers=gm.MIN_MATCHES)
-    reg = estimate_homography(xy1_m, xy2_m, paper_rules)
     scores = _registration_scores(pair, reg.H_cur_to_prev, S1, S2, shape1)
     status, mee, mae, rms, error_px, H_full = scores if reg.ok else _FAILED_SCORES
+    variant_error_px: dict[str, float] = {}
+    variant_s: dict[str, float] = {}
+    if pair.control_points is not None:
+        inliers = (
+            (
+                gm.warp_points(np.linalg.inv(S1), xy1_m[reg.inliers]).astype(np.float64),
+                gm.warp_points(np.linalg.inv(S2), xy2_m[reg.inliers]).astype(np.float64),
+            )
+            if H_full is not None
+            else None
+        )
+        variant_error_px, variant_s = fire_variants(
+            pair, inliers, H_full, min(S1[0, 0], S2[0, 0]), paper_rules
+        )
     return PairResult(
         detector=extractor.detector.name,
         pair=pair.name,
@@ -279,7 +309,58 @@ def evaluate_pair(
         error_px=error_px,
         time_ms=time_ms,
         H_est_1_to_2=None if H_full is None else H_full.tolist(),
+        coarse_s=coarse_s,
+        variant_error_px=variant_error_px,
+        variant_s=variant_s,
     )
+
+
+def fire_variants(
+    pair: Pair,
+    inliers: tuple[np.ndarray, np.ndarray] | None,
+    H_est_1_to_2: np.ndarray | None,
+    start_scale: float,
+    config: RegistrationConfig,
+) -> tuple[dict[str, float], dict[str, float]]:
+    """The FIRE error (px, inf when the coarse registration failed) and the seconds of each
+    FIRE_VARIANTS fit, all from the same coarse inliers (`inliers`: image 1's and image 2's
+    points, full resolution) and homography: image 2 (moving) is fitted into image 1 (fixed)
+    as `mosaic register` does (`refine.fit_pair`, `config.refine_levels` levels when refined;
+    none are run when it is 0), and the control points of image 2 are mapped into image 1."""
+    assert pair.control_points is not None
+    variants = {
+        name: spec
+        for name, spec in FIRE_VARIANTS.items()
+        if not spec[1] or config.refine_levels > 0
+    }
+    if inliers is None or H_est_1_to_2 is None:
+        return dict.fromkeys(variants, math.inf), dict.fromkeys(variants, 0.0)
+    xy_fixed, xy_moving = inliers
+    truth, points = pair.control_points[:, :2], pair.control_points[:, 2:4]
+    H0 = np.linalg.inv(H_est_1_to_2)
+    errors, seconds = {}, {}
+    for name, (model, refined) in variants.items():
+        levels = config.refine_levels if refined else 0
+        start = time.perf_counter()
+        fit, _ = fit_pair(
+            pair.image1,
+            pair.image2,
+            xy_moving,
+            xy_fixed,
+            H0 / H0[2, 2],
+            start_scale,
+            dataclasses.replace(config, refine_levels=levels),
+            model,
+        )
+        seconds[name] = time.perf_counter() - start
+        mapped = (
+            apply_quadratic(fit.Q, points)
+            if fit.model == "quadratic"
+            else apply_homography(fit.H, points)
+        )
+        error = float(np.mean(np.linalg.norm(mapped - truth, axis=1)))
+        errors[name] = error if math.isfinite(error) else math.inf
+    return errors, seconds
 
 
 def evaluate_pairs(
@@ -335,18 +416,40 @@ def summarize_pairs(results: Sequence[PairResult]) -> list[dict[str, Any]]:
         for group, values in stats.items():
             for key in ("mee_mean", "mee_std", "rmse_mean", "rmse_std"):
                 row[f"{group}_{key}"] = values[key]
-        row["auc"] = gm.fire_auc(errors)
-        row["auc_0_25"] = gm.fire_auc_integral(errors)
-        by_category = {
-            c: errors[[r.category == c for r in rs]] for c in dict.fromkeys(r.category for r in rs)
-        }
-        by_category.pop("", None)
-        for c, errs in sorted(by_category.items(), key=lambda kv: _category_key(kv[0])):
-            row[f"auc_{c}"] = gm.fire_auc(errs)
-        row["mauc"] = gm.mean_auc(by_category)
-        row["mean_error_px"] = _nanmean(errors)
+        row.update(_fire_scores(errors, [r.category for r in rs]))
         row["time_ms"] = _nanmean(r.time_ms for r in rs)
         rows.append(row)
+    return rows
+
+
+def _fire_scores(errors: np.ndarray, categories: Sequence[str]) -> dict[str, float]:
+    """The FIRE protocol's scores of per-pair errors: AUC 1-25, AUC 0-25, AUC per category,
+    mAUC and the mean error of the pairs that did not fail."""
+    scores = {"auc": gm.fire_auc(errors), "auc_0_25": gm.fire_auc_integral(errors)}
+    cats = np.asarray(categories)
+    by_category = {c: errors[cats == c] for c in dict.fromkeys(categories) if c}
+    for c, errs in sorted(by_category.items(), key=lambda kv: _category_key(kv[0])):
+        scores[f"auc_{c}"] = gm.fire_auc(errs)
+    scores["mauc"] = gm.mean_auc(by_category)
+    scores["mean_error_px"] = _nanmean(errors)
+    return scores
+
+
+def summarize_models(results: Sequence[PairResult]) -> list[dict[str, Any]]:
+    """FIRE pairs: one row per detector and FIRE_VARIANTS fit (the same coarse matches): its
+    FIRE scores, failed pairs and seconds per pair (coarse stage and fit); [] without them."""
+    rows = []
+    for detector in dict.fromkeys(r.detector for r in results):
+        rs = [r for r in results if r.detector == detector and r.variant_error_px]
+        for name in FIRE_VARIANTS:
+            if not rs or name not in rs[0].variant_error_px:
+                continue
+            errors = np.array([r.variant_error_px[name] for r in rs])
+            row: dict[str, Any] = {"detector": detector, "model": name, "pairs": len(rs)}
+            row["failed"] = int(np.sum(~np.isfinite(errors)))
+            row.update(_fire_scores(errors, [r.category for r in rs]))
+            row["s_per_pair"] = _nanmean(r.coarse_s + r.variant_s[name] for r in rs)
+            rows.append(row)
     return rows
 
 
@@ -407,20 +510,50 @@ REGISTRATION_COLUMNS = (
 )
 
 
-def format_pair_tables(summary: Sequence[dict[str, Any]]) -> str:
-    """The matching table and the registration table, one row per detector."""
+MODEL_COLUMNS = (
+    ("detector", "detector", ""),
+    ("model", "model", ""),
+    ("failed", "failed", "d"),
+    ("auc", "AUC 1-25", ".3f"),
+    ("auc_0_25", "AUC 0-25", ".3f"),
+    ("mauc", "mAUC", ".3f"),
+    ("mean_error_px", "error px", ".2f"),
+    ("s_per_pair", "s/pair", ".2f"),
+)
+
+
+def _with_categories(
+    columns: Sequence[tuple[str, str, str]], rows: Sequence[dict[str, Any]]
+) -> list[tuple[str, str, str]]:
+    """`columns` with an "AUC <category>" column per category in `rows`, before mAUC."""
     categories = sorted(
-        {k[4:] for row in summary for k in row if k.startswith("auc_") and k != "auc_0_25"},
+        {k[4:] for row in rows for k in row if k.startswith("auc_") and k != "auc_0_25"},
         key=_category_key,
     )
-    reg_cols = list(REGISTRATION_COLUMNS)
-    reg_cols[-2:-2] = [(f"auc_{c}", f"AUC {c}", ".3f") for c in categories]
-    return (
+    at = [key for key, _, _ in columns].index("mauc")
+    cols = list(columns)
+    cols[at:at] = [(f"auc_{c}", f"AUC {c}", ".3f") for c in categories]
+    return cols
+
+
+def format_pair_tables(
+    summary: Sequence[dict[str, Any]], models: Sequence[dict[str, Any]] = ()
+) -> str:
+    """The matching table and the registration table, one row per detector; for FIRE pairs
+    (`models`: `summarize_models`) the FIRE protocol per motion model and refinement."""
+    text = (
         "Matching (means per pair)\n"
         + format_table(summary, MATCHING_COLUMNS)
         + "\n\nRegistration (MEE/RMSE at detection scale; AUC and error px at full resolution)\n"
-        + format_table(summary, reg_cols)
+        + format_table(summary, _with_categories(REGISTRATION_COLUMNS, summary))
     )
+    if models:
+        text += (
+            "\n\nFIRE protocol per model, fitted to the same matches as `mosaic register` fits "
+            "them (error px at full resolution; s/pair: detection, matching and the fit)\n"
+            + format_table(models, _with_categories(MODEL_COLUMNS, models))
+        )
+    return text
 
 
 # --------------------------------------------------------------------------------------------
@@ -517,21 +650,42 @@ def plot_pairs(
     return [curve, bars]
 
 
+def _pair_rows(results: Sequence[PairResult]) -> list[dict[str, Any]]:
+    """pairs.csv's rows: a PairResult's fields, the variants' as `error_px_<variant>` and
+    `s_<variant>` columns, without the homography."""
+    rows = []
+    for r in results:
+        row = {k: v for k, v in dataclasses.asdict(r).items() if k not in _NESTED_PAIR_FIELDS}
+        for name, error in r.variant_error_px.items():
+            row[f"error_px_{name}"] = error
+            row[f"s_{name}"] = r.variant_s[name]
+        rows.append(row)
+    return rows
+
+
+_NESTED_PAIR_FIELDS = ("H_est_1_to_2", "variant_error_px", "variant_s")
+
+
 def write_pair_outputs(
     results: Sequence[PairResult],
     summary: Sequence[dict[str, Any]],
     out_dir: str | Path,
     meta: dict[str, Any] | None = None,
 ) -> list[Path]:
-    """summary.csv / summary.json (per detector), pairs.csv (per pair) and the two plots."""
+    """summary.csv / summary.json (per detector), pairs.csv (per pair), the two plots and, for
+    FIRE pairs, models.csv (per detector and FIRE_VARIANTS fit; also `models` in the JSON)."""
     out = _prepare_out(out_dir)
-    rows = [
-        {k: v for k, v in dataclasses.asdict(r).items() if k != "H_est_1_to_2"} for r in results
+    models = summarize_models(results)
+    written = [
+        write_csv(out / "summary.csv", summary),
+        write_csv(out / "pairs.csv", _pair_rows(results)),
     ]
-    written = [write_csv(out / "summary.csv", summary), write_csv(out / "pairs.csv", rows)]
+    if models:
+        written.append(write_csv(out / "models.csv", models))
     document = {
         "meta": meta or {},
         "summary": list(summary),
+        "models": models,
         "pairs": [dataclasses.asdict(r) for r in results],
     }
     written.append(write_json(out / "summary.json", _json_safe(document)))

@@ -34,8 +34,8 @@ from mosaic.matching import Matches, match_descriptors
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import FrameGate, OverlayMask, Prepared, prepare, to_working_size
 from mosaic.quality import frame_vs_canvas
-from mosaic.refine import refine_pair
-from mosaic.registration import MODELS, Registration, estimate_motion, robust_fit
+from mosaic.refine import fit_pair
+from mosaic.registration import MODELS, Registration, estimate_motion
 from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
 
@@ -606,26 +606,21 @@ def register_pair(
         return reg
     H = np.linalg.inv(S_fixed) @ reg.H_cur_to_prev @ S_moving
     reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])
-    levels = config.registration.refine_levels
     pair_model = model if model in ("quadratic", "auto") else "homography"
     if reg.model != "homography" and model != "quadratic":
         return reg  # a simpler model was chosen or asked for: nothing to refine it towards
     xy_full = (xy_moving[reg.inliers] + 0.5) / S_moving[0, 0] - 0.5
-    coarse_px = config.registration.reproj_threshold_px / min(scales)  # at full resolution
-    fit, levels_done = None, 0
-    if levels > 0:
-        refined = refine_pair(
-            fixed, moving, xy_full, reg.H_cur_to_prev, min(scales), levels, pair_model, coarse_px
-        )
-        if refined is None or refined.fit.inliers.sum() < config.registration.min_inliers:
-            log.info("refinement kept too few matches: the coarse registration stands")
-        else:
-            fit, levels_done = refined.fit, refined.levels
-    if fit is None:
-        xy_target = (features_fixed.xy[matches.idx_a][reg.inliers] + 0.5) / S_fixed[0, 0] - 0.5
-        fit = robust_fit(
-            xy_full, xy_target, moving.shape[:2], reg.H_cur_to_prev, coarse_px, pair_model
-        )
+    xy_target = (features_fixed.xy[matches.idx_a][reg.inliers] + 0.5) / S_fixed[0, 0] - 0.5
+    fit, levels_done = fit_pair(
+        fixed,
+        moving,
+        xy_full,
+        xy_target,
+        reg.H_cur_to_prev,
+        min(scales),
+        config.registration,
+        pair_model,
+    )
     chosen = fit.model if model in ("quadratic", "auto") else "homography"
     return dataclasses.replace(
         reg,

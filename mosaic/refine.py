@@ -12,13 +12,17 @@ windows, one small `cv2.matchTemplate` per match and level.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from mosaic.config import RegistrationConfig
 from mosaic.registration import RobustFit, apply_homography, apply_quadratic, robust_fit
+
+log = logging.getLogger(__name__)
 
 TEMPLATE_HALF_PX = 12  # template of 25x25 level pixels
 SEARCH_PX = 5  # searched this far around the prediction at each level
@@ -172,6 +176,40 @@ def refine_pair(
     if fit is None or xy_f is None or ncc is None:
         return None
     return Refined(fit, xy_moving, xy_f, ncc, len(level_scales(start_scale, levels)))
+
+
+def fit_pair(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    xy_moving: np.ndarray,
+    xy_fixed: np.ndarray,
+    H_moving_to_fixed: np.ndarray,
+    start_scale: float,
+    config: RegistrationConfig,
+    model: str = "homography",
+) -> tuple[RobustFit, int]:
+    """A pair's final transform from its coarse inliers (`xy_moving` -> `xy_fixed`, full
+    resolution, found at `start_scale`) and coarse homography: refined through `config.
+    refine_levels` levels (`refine_pair`), or, with none or when refinement keeps fewer than
+    `config.min_inliers` matches, fitted robustly to the coarse matches; and the levels done.
+    `model` as in `registration.robust_fit`."""
+    coarse_px = config.reproj_threshold_px / start_scale  # the coarse threshold, full resolution
+    if config.refine_levels > 0:
+        refined = refine_pair(
+            fixed,
+            moving,
+            xy_moving,
+            H_moving_to_fixed,
+            start_scale,
+            config.refine_levels,
+            model,
+            coarse_px,
+        )
+        if refined is not None and refined.fit.inliers.sum() >= config.min_inliers:
+            return refined.fit, refined.levels
+        log.info("refinement kept too few matches: the coarse registration stands")
+    fit = robust_fit(xy_moving, xy_fixed, moving.shape[:2], H_moving_to_fixed, coarse_px, model)
+    return fit, 0
 
 
 def fixed_to_moving_map(
