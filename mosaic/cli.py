@@ -380,7 +380,10 @@ def synth(
         Path("synthetic.mp4")
     ),
     frames: Annotated[int, typer.Option(min=2, help="Number of frames.")] = 60,
-    size: Annotated[str, typer.Option(help="Frame size WIDTHxHEIGHT.")] = "660x350",
+    size: Annotated[
+        str | None,
+        typer.Option(help="Frame size WIDTHxHEIGHT (default 660x350; curved pairs: 2912x2912)."),
+    ] = None,
     seed: Annotated[int, typer.Option(help="Random seed of the trajectory.")] = 0,
     clean: Annotated[bool, typer.Option(help="No noise, blur or illumination changes.")] = False,
     hard: Annotated[
@@ -393,19 +396,49 @@ def synth(
             "its rim at times, strong vignetting, gain/gamma changes, blur/defocus/glare bursts."
         ),
     ] = False,
+    curved_pairs: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            help="Instead of a video: N pairs of photographs of a curved retina with exact "
+            "control points, in FIRE's layout, into the folder OUTPUT (pair i: source and "
+            "camera poses of seed + i).",
+        ),
+    ] = 0,
 ) -> None:
-    """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json)."""
+    """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json), or
+    pairs of photographs of a curved retina with exact control points (--curved-pairs)."""
     from mosaic.io import sample_image_path
 
     _setup_logging(False)
     with _user_errors():
         if hard and realistic:
             raise InputError("choose one of --hard and --realistic")
+        if curved_pairs:
+            _curved_pairs(image or sample_image_path(), output, curved_pairs, seed, size)
+            return
         make = SynthParams.hard if hard else SynthParams.realistic if realistic else SynthParams
-        params = make(n_frames=frames, size=_parse_size(size), seed=seed, nuisances=not clean)
+        params = make(
+            n_frames=frames, size=_parse_size(size or "660x350"), seed=seed, nuisances=not clean
+        )
         source = pick_source(image or sample_image_path(), seed)
         gt = write_synthetic_video(source, output, params)
         typer.echo(f"video: {output}\nground truth: {gt}\nsource: {source}")
+
+
+def _curved_pairs(image: Path, output: Path, n_pairs: int, seed: int, size: str | None) -> None:
+    """`synth --curved-pairs`: the pairs in FIRE's layout (`mosaic.curved.write_fire_folder`)."""
+    from mosaic.curved import write_fire_folder
+
+    width, height = _parse_size(size or "2912x2912")
+    if width != height:
+        raise InputError(f"curved pairs are square: --size {size} is not")
+    sources = [pick_source(image, seed + i) for i in range(n_pairs)]
+    write_fire_folder(sources, output, n_pairs, seed=seed, size=width)
+    typer.echo(
+        f"{n_pairs} curved pairs: {output} (FIRE layout; {output / 'pairs.csv'} for "
+        f"mosaic register --pairs)\nsources: {', '.join(sorted({s.name for s in sources}))}"
+    )
 
 
 def _pair_result(

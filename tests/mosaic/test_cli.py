@@ -191,6 +191,20 @@ def test_register_prints_the_homography(fundus, tmp_path):
     assert corner_error(np.array(lines[2]["H_moving_to_fixed"]), H_b_to_a, (480, 320)) < 2.0
 
 
+def test_synth_curved_pairs_writes_a_fire_folder_with_exact_control_points(tmp_path):
+    from mosaic.datasets import load_fire
+
+    out = tmp_path / "curved"
+    args = ["synth", "--curved-pairs", "2", "--size", "320x320", "--seed", "4", "-o", str(out)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    pairs = list(load_fire(out))
+    assert [p.name for p in pairs] == ["C01", "C02"]
+    assert pairs[0].image1.shape == (320, 320, 3) and pairs[0].control_points.shape == (10, 4)
+    assert len((out / "pairs.csv").read_text().splitlines()) == 3
+    _one_line_error(runner.invoke(app, [*args[:4], "320x200", "-o", str(out)]), "square")
+
+
 def test_register_curved_pair_prints_the_quadratic_and_warps(tmp_path):
     from mosaic.curved import curved_pair
     from mosaic.registration import apply_quadratic
