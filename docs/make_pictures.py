@@ -1,10 +1,11 @@
 """Make the documentation's pictures (docs/img/*.jpg) with the app's own commands.
 
-    python docs/make_pictures.py [sample] [matches] [hard] [evaluation] [--work DIR] [--force]
+    python docs/make_pictures.py [sample] [matches] [hard] [evaluation] [curved] [curved-val]
+                                 [--work DIR] [--force]
 
 Each picture runs `mosaic ...` commands (printed as they run; their outputs go to the work
 folder, default /tmp/retina-mosaic-pictures, and are reused unless --force), then frames
-their outputs into a small JPEG with OpenCV. No argument: all four.
+their outputs into a small JPEG with OpenCV. No argument: all of them.
 """
 
 from __future__ import annotations
@@ -178,7 +179,81 @@ def evaluation(work: Path, force: bool) -> None:
         save(f"{name}.jpg", fit(cv2.imread(str(work / "eval" / f"{name}.png")), width=720))
 
 
-PICTURES = {"sample": sample, "matches": matches, "hard": hard, "evaluation": evaluation}
+def _curved(work: Path, force: bool, source: str, folder: str) -> np.ndarray:
+    """A curved pair (`mosaic synth --curved-pairs`: C01 of the measured set, seed 0) registered
+    by `mosaic register --model homography` and `--model quadratic`: both `--warp`
+    checkerboards, and 1:1 details around the control point the homography misses most."""
+    run(
+        f"mosaic synth {source} --curved-pairs 1 --seed 0 -o {folder}".replace("  ", " "),
+        work,
+        work / folder / "pairs.csv",
+        force,
+    )
+    images = f"{folder}/Images/C01_1.jpg {folder}/Images/C01_2.jpg"
+    points = np.loadtxt(work / folder / "Ground Truth" / "control_points_C01_1_2.txt")
+    checks, errors = {}, {}
+    for model in ("homography", "quadratic"):
+        out = work / folder / f"{model}.png"
+        if force or not out.exists():
+            command = f"mosaic register {images} --model {model} --warp {folder}/{model}.png --json"
+            print(f"$ {command} > {folder}/{model}.json", flush=True)
+            result = subprocess.run(
+                shlex.split(command), cwd=work, check=True, capture_output=True, text=True
+            )
+            (work / folder / f"{model}.json").write_text(result.stdout)
+        answer = json.loads((work / folder / f"{model}.json").read_text())
+        warped = cv2.imread(str(out))
+        checks[model] = warped[:, warped.shape[1] // 2 :]  # the checkerboard half
+        xy = np.column_stack([points[:, 2:], np.ones(len(points))])
+        if answer["Q_moving_to_fixed"] is not None:
+            x, y = xy[:, 0], xy[:, 1]
+            mapped = (
+                np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+                @ np.array(answer["Q_moving_to_fixed"]).T
+            )
+        else:
+            p = xy @ np.array(answer["H_moving_to_fixed"]).T
+            mapped = p[:, :2] / p[:, 2:]
+        errors[model] = np.linalg.norm(mapped - points[:, :2], axis=1)
+    worst = int(np.argmax(errors["homography"]))
+    cx, cy = points[worst, :2]
+    h, w = 360, 480
+    wholes, crops = [], []
+    for model, check in checks.items():
+        x0 = int(np.clip(cx - w / 2, 0, check.shape[1] - w))
+        y0 = int(np.clip(cy - h / 2, 0, check.shape[0] - h))
+        detail = check[y0 : y0 + h, x0 : x0 + w].copy()
+        cv2.circle(detail, (round(cx - x0), round(cy - y0)), 12, (0, 255, 255), 2, cv2.LINE_AA)
+        e = errors[model]
+        wholes.append(label(fit(check, width=w), f"{model}: mean error {e.mean():.1f} px"))
+        crops.append(label(detail, f"1:1, the circled point {e[worst]:.1f} px off"))
+    return column([row(wholes), row(crops)])
+
+
+def curved(work: Path, force: bool) -> None:
+    """docs/img/curved_pair.jpg: a curved pair rendered from the CC0 sample, registered with
+    the homography and with the quadratic (`--warp` checkerboards)."""
+    save("curved_pair.jpg", _curved(work, force, "", "curved_sample"))
+
+
+def curved_val(work: Path, force: bool) -> None:
+    """The same for a curved pair rendered from a validation photograph (not shipped: the LMC
+    photographs may not be redistributed, so this picture stays in the work folder)."""
+    val = REPO.parent / "shared" / "data" / "retina" / "val" / "lmc"
+    picture = _curved(work, force, str(val), "curved_val")
+    path = work / "curved_val_pair.jpg"
+    cv2.imwrite(str(path), picture, [cv2.IMWRITE_JPEG_QUALITY, QUALITY])
+    print(f"wrote {path} (not under docs/img: rendered from a photograph we may not ship)")
+
+
+PICTURES = {
+    "sample": sample,
+    "matches": matches,
+    "hard": hard,
+    "evaluation": evaluation,
+    "curved": curved,
+    "curved-val": curved_val,
+}
 
 
 def main() -> None:
