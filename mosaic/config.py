@@ -40,7 +40,8 @@ class PreprocessConfig:
     max_side_px: int = 800  # larger frames are registered downscaled to this longer side (0: off)
     fov_diameter_px: int = 512  # `mosaic register`: a photograph showing the whole retina is
     # registered with the retina's diameter at this (the detector's training images: 460-640
-    # px, median 590), instead of by max_side_px (0: off)
+    # px, median 590), instead of by max_side_px; `mosaic build`: a video whose first readable
+    # frame shows a whole retina is also scaled so that it is at most this across (0: off)
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,16 @@ from mosaic.features import FeatureExtractor, Features, to_frame_pixels
 from mosaic.io import Frame, prefetch
 from mosaic.matching import Matches, match_descriptors
 from mosaic.photometry import VideoPhotometry
-from mosaic.preprocess import FrameGate, OverlayMask, Prepared, prepare, to_working_size
+from mosaic.preprocess import (
+    FrameGate,
+    OverlayMask,
+    Prepared,
+    prepare,
+    resize_by,
+    retina_disc,
+    to_working_size,
+    working_scale,
+)
 from mosaic.quality import frame_vs_canvas
 from mosaic.refine import fit_pair
 from mosaic.registration import MODELS, Registration, estimate_motion
@@ -168,6 +177,10 @@ class MosaicBuilder:
         self._photometry = VideoPhotometry(compose.side_bands, compose.flatfield)
         self._max_side = config.preprocess.max_side_px
         self._S: np.ndarray | None = None  # H_frame_to_work of the video's frames (one size)
+        # diameter (px) of the whole retina the video's first readable frame shows (None: it
+        # shows none, or [preprocess] fov_diameter_px = 0): it sets every frame's working size
+        self._retina_diameter_px: float | None = None
+        self._retina_decided = False
         # The quality score is computed where it is used: live when the viewer shows it or no
         # re-render will replace the live poses; else once, in the re-render pass, at the poses
         # the report gives (the live score would be overwritten there).
@@ -211,7 +224,7 @@ class MosaicBuilder:
         if image is None:
             return Extracted(record, None, skip=error or "frame could not be decoded")
         timer = _Timer(record)
-        work, S = timer.run("preprocess", to_working_size, image, self._max_side)
+        work, S = timer.run("preprocess", self._working_size, image)
         prepared = timer.run("preprocess", prepare, work, self.config.preprocess)
         gate_reason = self._gate(prepared)  # before overlay masking: sharpness of the whole view
         prepared = timer.run("preprocess", self._overlay, work, prepared)
@@ -221,6 +234,24 @@ class MosaicBuilder:
         features = timer.run("describe", self.extractor.describe, prepared, detected)
         record.n_keypoints = len(features)
         return Extracted(record, image, prepared, features, H_frame_to_work=S)
+
+    def _working_size(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The frame at the video's working size and H_frame_to_work (None: unchanged): its
+        longer side at most `[preprocess] max_side_px`, and, when the video's first readable
+        frame shows a whole retina (`preprocess.retina_disc`: fundus video), that retina's
+        diameter at most `fov_diameter_px` (the detector's scale, as `mosaic register`), the
+        same factor for every frame. Slit-lamp, AO and magnified fundus video show no whole
+        retina: max_side_px alone, as before. Never upscales; max_side_px = 0 turns both off."""
+        pre = self.config.preprocess
+        if not self._retina_decided:
+            self._retina_decided = True
+            rule_on = pre.fov_diameter_px > 0 and self._max_side > 0
+            disc = retina_disc(image) if rule_on else None
+            self._retina_diameter_px = None if disc is None else 2.0 * disc[2]
+        scale = working_scale(image, self._max_side)
+        if self._retina_diameter_px is not None:
+            scale = min(scale, pre.fov_diameter_px / self._retina_diameter_px)
+        return resize_by(image, scale)
 
     def register(self, extracted: Extracted) -> FrameRecord:
         """Track and compose an extracted frame (frames in order), report it to the viewer."""
@@ -232,9 +263,15 @@ class MosaicBuilder:
         features = extracted.features
         if self._S is None and extracted.H_frame_to_work is not None:
             h, w = image.shape[:2]
+            rule = f"max_side_px = {self._max_side}"
+            if self._retina_diameter_px is not None:
+                rule += (
+                    f", fov_diameter_px = {self.config.preprocess.fov_diameter_px} with the "
+                    f"retina {self._retina_diameter_px:.0f} px across"
+                )
             log.info(
-                "frames of %dx%d are registered at %dx%d ([preprocess] max_side_px = %d)",
-                w, h, prepared.gray.shape[1], prepared.gray.shape[0], self._max_side,
+                "frames of %dx%d are registered at %dx%d ([preprocess] %s)",
+                w, h, prepared.gray.shape[1], prepared.gray.shape[0], rule,
             )  # fmt: skip
         self._S = extracted.H_frame_to_work
         timer = _Timer(record)
@@ -383,7 +420,7 @@ class MosaicBuilder:
                 if index not in owner or image is None:
                     continue
                 # the overlay estimate of the whole video: no overlay pixels from any frame
-                work, _ = to_working_size(image, self._max_side)
+                work, _ = self._working_size(image)
                 prepared = self._overlay.apply(prepare(work, mask_config))
                 yield index, image, self._photometry.frame_mask(self._frame_mask(prepared, image))
 
@@ -539,6 +576,9 @@ def build_report(
         "mean_stage_ms": stage_ms,
         "detector": builder.extractor.detector.name,
         "working_scale": 1.0 if builder._S is None else round(float(builder._S[0, 0]), 4),
+        "retina_diameter_px": None
+        if builder._retina_diameter_px is None
+        else round(builder._retina_diameter_px, 1),
         "strategy": builder.config.pipeline.strategy,
         "models": _model_counts(records),
         "tracking": _tracking_summary(builder),

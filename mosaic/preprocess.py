@@ -179,7 +179,12 @@ def to_working_size(
     4x slower. A fundus photograph is sized by its retina, not by its file: a 2912 px photograph
     whose retina spans 2700 px and a 640 px one whose retina spans 500 px then look alike.
     """
-    scale = working_scale(image, max_side_px, fov_diameter_px)
+    return resize_by(image, working_scale(image, max_side_px, fov_diameter_px))
+
+
+def resize_by(image: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """The image resized by `scale` (< 1; INTER_AREA) and H_image_to_resized, or the image
+    itself and None when `scale` >= 1."""
     if scale >= 1.0:
         return image, None
     h, w = image.shape[:2]

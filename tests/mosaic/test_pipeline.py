@@ -13,7 +13,7 @@ from mosaic.io import Frame, open_frames
 from mosaic.pipeline import MosaicBuilder
 from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
-from tests.helpers import build_from_folder, corner_error, errors_to_first
+from tests.helpers import build_from_folder, corner_error, errors_to_first, similarity
 
 SIZE = (400, 300)
 
@@ -296,6 +296,43 @@ def test_large_frames_register_at_the_working_size_and_compose_at_full_size(vide
     full = _run(big, with_overrides(_config(), preprocess={"max_side_px": 0}))
     assert full.report["summary"]["working_scale"] == 1.0
     assert full.report["summary"]["registered"] == 24
+
+
+def test_a_video_of_whole_retinas_is_registered_with_its_retina_at_the_detectors_scale(tmp_path):
+    """Fundus video showing the whole retina (the sample photograph, turned and shifted): the
+    first frame's retina sets one working scale for all frames, [preprocess] fov_diameter_px
+    over its diameter, reported with it; with the rule off, max_side_px applies as before."""
+    source = cv2.imread(str(SAMPLE_IMAGE))
+    h, w = source.shape[:2]
+    folder = tmp_path / "fundus"
+    folder.mkdir()
+    truth = [similarity(1.5 * k, 1.0, 12.0 * k, -8.0 * k, (w / 2, h / 2)) for k in range(6)]
+    for k, G in enumerate(truth):  # H_frame_to_source
+        frame = cv2.warpPerspective(source, np.linalg.inv(G), (w, h))
+        cv2.imwrite(str(folder / f"frame{k:02d}.png"), frame)
+    result = _run(folder, _config())
+    summary = result.report["summary"]
+    assert summary["retina_diameter_px"] == pytest.approx(1400.0, rel=0.01)  # 1411 px image
+    assert summary["working_scale"] == pytest.approx(512 / summary["retina_diameter_px"], 1e-3)
+    assert summary["registered"] == 6
+    errors = _errors_to_first(result.report["frames"], truth, (w, h))
+    assert np.max(errors) < 3.0, errors  # full-resolution pixels
+    off = _run(folder, with_overrides(_config(), preprocess={"fov_diameter_px": 0}))
+    assert off.report["summary"]["retina_diameter_px"] is None
+    assert off.report["summary"]["working_scale"] == pytest.approx(800 / 1411, 1e-3)
+
+
+def test_the_retina_rule_changes_nothing_where_the_retina_is_under_fov_diameter_px(video):
+    """The fixture's 400x300 frames show a whole round view 395 px across: under 512 px, so
+    the frames register at full size, exactly as with the rule off."""
+    folder, _ = video
+    result = _run(folder, _config())
+    off = _run(folder, with_overrides(_config(), preprocess={"fov_diameter_px": 0}))
+    assert result.report["summary"]["retina_diameter_px"] == pytest.approx(395, abs=5)
+    assert off.report["summary"]["retina_diameter_px"] is None
+    assert result.report["summary"]["working_scale"] == 1.0
+    poses = [f["H_to_canvas"] for f in result.report["frames"]]
+    assert poses == [f["H_to_canvas"] for f in off.report["frames"]]
 
 
 class _Events:
