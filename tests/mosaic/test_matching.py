@@ -71,3 +71,26 @@ def test_matches_equal_a_brute_force_on_true_distances():
         np.testing.assert_array_equal(m.idx_a, np.flatnonzero(keep))
         np.testing.assert_array_equal(m.idx_b, nn[keep])
         np.testing.assert_allclose(m.distance, best[keep], atol=1e-4)
+
+
+def test_cross_check_with_ties_keeps_the_first_row_as_argmax_does():
+    """Duplicate descriptors tie in a column: only the first of them is mutual, as with
+    `argmax(axis=0)`, on both the unit-norm (similarity) and the distance path."""
+    rng = np.random.default_rng(3)
+    a = rng.random((40, 16)).astype(np.float32)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = a[rng.permutation(40)[:30]].copy()
+    a[7] = a[5]  # rows 5 and 7 tie for the same column
+    b[3] = b[1]  # columns 1 and 3 tie for the same row
+    for cfg, unit in ((MatchingConfig(), True), (MatchingConfig(ratio=0.99), False)):
+        m = match_descriptors(a, b, cfg)
+        s = a @ b.T if unit else -(distance_matrix(a, b) ** 2)
+        nn = s.argmax(axis=1)
+        keep = s.argmax(axis=0)[nn] == np.arange(40)
+        if not unit:
+            d = distance_matrix(a, b)
+            second = np.sort(d, axis=1)[:, 1]
+            keep &= d[np.arange(40), nn] ** 2 < 0.99**2 * second**2
+        np.testing.assert_array_equal(m.idx_a, np.flatnonzero(keep))
+        np.testing.assert_array_equal(m.idx_b, nn[keep])
+        assert 7 not in m.idx_a.tolist()
