@@ -650,6 +650,34 @@ def plot_pairs(
     return [curve, bars]
 
 
+def plot_models(results: Sequence[PairResult], models: Sequence[dict[str, Any]], out: Path) -> Path:
+    """cumulative_error_models.png: the FIRE success curve of each FIRE_VARIANTS fit, one
+    panel per detector."""
+    plt = _pyplot()
+    detectors = list(dict.fromkeys(row["detector"] for row in models))
+    t = np.linspace(0.0, gm.FIRE_MAX_THRESHOLD_PX, 251)
+    fig, axes = plt.subplots(1, len(detectors), figsize=(4.6 * len(detectors), 3.8), squeeze=False)
+    for ax, detector in zip(axes[0], detectors, strict=True):
+        rs = [r for r in results if r.detector == detector and r.variant_error_px]
+        for row in (m for m in models if m["detector"] == detector):
+            errors = np.array([r.variant_error_px[row["model"]] for r in rs])
+            label = f"{row['model']} (AUC {row['auc']:.3f})"
+            ax.plot(t, gm.success_curve(errors, t), label=label)
+        ax.set_title(detector, fontsize=10)
+        ax.set_xlabel("error threshold t [px, full resolution]")
+        ax.set_xlim(0, gm.FIRE_MAX_THRESHOLD_PX)
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="lower right")
+    axes[0][0].set_ylabel("fraction of pairs with error < t")
+    fig.tight_layout()
+    path = out / "cumulative_error_models.png"
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def _pair_rows(results: Sequence[PairResult]) -> list[dict[str, Any]]:
     """pairs.csv's rows: a PairResult's fields, the variants' as `error_px_<variant>` and
     `s_<variant>` columns, without the homography."""
@@ -673,7 +701,8 @@ def write_pair_outputs(
     meta: dict[str, Any] | None = None,
 ) -> list[Path]:
     """summary.csv / summary.json (per detector), pairs.csv (per pair), the two plots and, for
-    FIRE pairs, models.csv (per detector and FIRE_VARIANTS fit; also `models` in the JSON)."""
+    FIRE pairs, models.csv (per detector and FIRE_VARIANTS fit; also `models` in the JSON) and
+    cumulative_error_models.png."""
     out = _prepare_out(out_dir)
     models = summarize_models(results)
     written = [
@@ -690,6 +719,8 @@ def write_pair_outputs(
     }
     written.append(write_json(out / "summary.json", _json_safe(document)))
     written += plot_pairs(results, summary, out)
+    if models:
+        written.append(plot_models(results, models, out))
     return written
 
 

@@ -149,6 +149,7 @@ def test_fire_table_on_curved_pairs_ranks_the_models_against_the_truth(tmp_path)
     assert all(row["s_per_pair"] > 0 for row in models.values())
     with (out / "models.csv").open() as fh:
         assert [r["model"] for r in csv.DictReader(fh)] == list(FIRE_VARIANTS)
+    assert (out / "cumulative_error_models.png").read_bytes()[:4] == b"\x89PNG"
     with (out / "pairs.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     errors = [float(r["error_px_quad+refine"]) for r in rows]
