@@ -164,17 +164,15 @@ class _Lattice:
         self.weights = ((1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx, fy * (1.0 - fx), fy * fx)
 
     def read(self, tables: np.ndarray) -> np.ndarray:
-        """D of each channel at the lattice nodes, (C, N, 6, 6) float64, from (C, R, S) tables."""
-        out = np.empty((len(tables), *self.corners[0].shape))
-        tmp = np.empty_like(out[0])
-        for table, vals in zip(tables, out, strict=True):  # per channel: temporaries stay in cache
-            flat = table.ravel()
-            np.take(flat, self.corners[0], out=vals)
-            vals *= self.weights[0]
-            for idx, weight in zip(self.corners[1:], self.weights[1:], strict=True):
-                np.take(flat, idx, out=tmp)
-                tmp *= weight
-                vals += tmp
+        """D of each channel at the lattice nodes, (N, 6, 6, C) float64, from channel-last
+        (R * S, C) tables: each bilinear tap gathers one node's C channels, contiguous."""
+        out = np.take(tables, self.corners[0], axis=0)
+        out *= self.weights[0][..., None]
+        tmp = np.empty_like(out)
+        for idx, weight in zip(self.corners[1:], self.weights[1:], strict=True):
+            np.take(tables, idx, axis=0, out=tmp)
+            tmp *= weight[..., None]
+            out += tmp
         return out
 
 
@@ -211,14 +209,16 @@ def _cell_histograms(image_gray: np.ndarray, pts: np.ndarray, cell_px: np.ndarra
         # are noise (a flat region would otherwise get a normalised noise descriptor): 0.
         tol = 64.0 * np.finfo(np.float64).eps * float(tables[lv][:, -1, -1].max())
         shape = (hp >> lv, wp >> lv)
+        # channel-last (R * S, 8): a lattice node's 8 channels share a cache line
+        by_node = np.ascontiguousarray(tables[lv].reshape(_N_ORI, -1).T)
         for start in range(0, len(sel), _CHUNK):  # chunks keep the temporaries in cache
             part = sel[start : start + _CHUNK]
-            node = _Lattice(pts[part], cell_px[part], lv, shape).read(tables[lv])  # (8,n,6,6)
-            rows = node[:, :, :-2] - 2.0 * node[:, :, 1:-1] + node[:, :, 2:]
-            cells = rows[..., :-2] - 2.0 * rows[..., 1:-1] + rows[..., 2:]  # (8, n, 4, 4)
+            node = _Lattice(pts[part], cell_px[part], lv, shape).read(by_node)  # (n,6,6,8)
+            rows = node[:, :-2] - 2.0 * node[:, 1:-1] + node[:, 2:]
+            cells = rows[:, :, :-2] - 2.0 * rows[:, :, 1:-1] + rows[:, :, 2:]  # (n, 4, 4, 8)
             # In units of the level's tables: a per-point factor the normalisation removes.
             cells[cells < tol] = 0.0
-            hist[part] = cells.transpose(1, 2, 3, 0)
+            hist[part] = cells
     return hist
 
 
