@@ -214,28 +214,13 @@ class Canvas:
         valid = np.zeros((h, w), bool)
         if self._content is None or fh == 0 or fw == 0:
             return values, valid
-        H_out_to_frame = np.linalg.inv(scale_matrix((fh, fw), (h, w)))
-        H_out_to_ref = np.asarray(H_frame_to_ref, np.float64) @ H_out_to_frame
-        # Only the content under the frame's footprint is sampled (the buffer may be large).
-        corners = np.array([[-1, -1, 1], [w, -1, 1], [-1, h, 1], [w, h, 1]], float)
-        mapped = corners @ H_out_to_ref.T
-        if not np.all(np.isfinite(mapped)) or np.any(mapped[:, 2] <= _MIN_W):
+        roi = self._roi_under(H_frame_to_ref, (fh, fw), (h, w))
+        if roi is None:
             return values, valid
-        xy = mapped[:, :2] / mapped[:, 2:]
-        cx0, cy0, cx1, cy1 = self._content
-        x0 = max(int(np.floor(xy[:, 0].min())) - 1, cx0)
-        y0 = max(int(np.floor(xy[:, 1].min())) - 1, cy0)
-        x1 = min(int(np.ceil(xy[:, 0].max())) + 2, cx1)
-        y1 = min(int(np.ceil(xy[:, 1].max())) + 2, cy1)
-        if x1 <= x0 or y1 <= y0:
-            return values, valid
-        rows = slice(y0 - self._buf_y0, y1 - self._buf_y0)
-        cols = slice(x0 - self._buf_x0, x1 - self._buf_x0)
-        sum_roi, weight_roi = self._sum[rows, cols], self._weight[rows, cols]
-        M = _translation(-float(x0), -float(y0)) @ H_out_to_ref  # output -> ROI pixels
+        M, rows, cols = roi
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        warped_sum = cv2.warpPerspective(sum_roi, M, (w, h), flags=flags)
-        weight = cv2.warpPerspective(weight_roi, M, (w, h), flags=flags)
+        warped_sum = cv2.warpPerspective(self._sum[rows, cols], M, (w, h), flags=flags)
+        weight = cv2.warpPerspective(self._weight[rows, cols], M, (w, h), flags=flags)
         if channel is not None and warped_sum.ndim == 3:
             warped_sum = warped_sum[..., min(channel, warped_sum.shape[2] - 1)]
         elif channel is None:
@@ -248,6 +233,32 @@ class Canvas:
             where=valid if channel is not None else valid[..., None],
         )
         return values, valid
+
+    def _roi_under(
+        self, H_frame_to_ref: np.ndarray, frame: tuple[int, int], out: tuple[int, int]
+    ) -> tuple[np.ndarray, slice, slice] | None:
+        """What `content_in_frame` samples for a (h, w) = `frame` frame seen at (h, w) = `out`:
+        M (output pixels -> ROI pixels) and the buffer's rows and columns of the content under
+        the frame's footprint (the buffer may be large); None where nothing is under it."""
+        assert self._content is not None
+        h, w = out
+        H_out_to_frame = np.linalg.inv(scale_matrix(frame, out))
+        H_out_to_ref = np.asarray(H_frame_to_ref, np.float64) @ H_out_to_frame
+        corners = np.array([[-1, -1, 1], [w, -1, 1], [-1, h, 1], [w, h, 1]], float)
+        mapped = corners @ H_out_to_ref.T
+        if not np.all(np.isfinite(mapped)) or np.any(mapped[:, 2] <= _MIN_W):
+            return None
+        xy = mapped[:, :2] / mapped[:, 2:]
+        cx0, cy0, cx1, cy1 = self._content
+        x0 = max(int(np.floor(xy[:, 0].min())) - 1, cx0)
+        y0 = max(int(np.floor(xy[:, 1].min())) - 1, cy0)
+        x1 = min(int(np.ceil(xy[:, 0].max())) + 2, cx1)
+        y1 = min(int(np.ceil(xy[:, 1].max())) + 2, cy1)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        rows = slice(y0 - self._buf_y0, y1 - self._buf_y0)
+        cols = slice(x0 - self._buf_x0, x1 - self._buf_x0)
+        return _translation(-float(x0), -float(y0)) @ H_out_to_ref, rows, cols
 
     # ----------------------------------------------------------------------------- adding
 
@@ -325,6 +336,7 @@ class Canvas:
         elif not self._feathered and weights is None:  # average
             cv2.accumulate(warped, sum_roi, valid)
             cv2.accumulate(self._scratch("ones", rh, rw, 1, np.float32), weight_roi, valid)
+            self._accumulate_more(M, valid, (slice(by, by + rh), slice(bx, bx + rw)))
         else:  # per-pixel weights: feather ramp and / or the given factor
             weight_c = weight
             if cn > 1:
@@ -341,6 +353,9 @@ class Canvas:
         self._n_frames += 1
 
     # ----------------------------------------------------------------------------- internals
+
+    def _accumulate_more(self, M: np.ndarray, valid: np.ndarray, roi: tuple[slice, slice]) -> None:
+        """Hook of `add` (average blend): more planes under the same placement (`_Planes`)."""
 
     def _check_image(self, image: np.ndarray) -> np.ndarray:
         """Validate dtype and channel count; returns HxW (1 channel) or HxWxC."""
@@ -507,14 +522,88 @@ def _weights_from_small(small: np.ndarray, shape: tuple[int, int]) -> np.ndarray
     return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
+class _Planes(Canvas):
+    """Several 3-channel average-blend canvases that always share placements and masks, as
+    one: the first plane is this canvas, the others only add their sums, so each frame's
+    weights are computed and warped once for all. Every plane holds what a `Canvas` of its
+    own would hold, bit for bit."""
+
+    def __init__(self, config: ComposeConfig, planes: int) -> None:
+        super().__init__(dataclasses.replace(config, blend="average"), 3)
+        self._more_sums = [self._sum.copy() for _ in range(planes - 1)]
+        self._more_images: list[np.ndarray] = []
+
+    def add_planes(
+        self, images: list[np.ndarray], H_frame_to_ref: np.ndarray, mask: np.ndarray
+    ) -> None:
+        """`Canvas.add` of one (h, w, 3) float32 image per plane, all at the same place."""
+        self._more_images = images[1:]
+        try:
+            self.add(images[0], H_frame_to_ref, mask)
+        finally:
+            self._more_images = []
+
+    def planes_in_frame(
+        self, H_frame_to_ref: np.ndarray, frame_shape: tuple[int, ...]
+    ) -> tuple[list[np.ndarray], np.ndarray]:
+        """`content_in_frame(..., channel=None)` of every plane at scale 1: ((h, w, 3) values
+        per plane, valid)."""
+        h, w = int(frame_shape[0]), int(frame_shape[1])
+        sums = [self._sum, *self._more_sums]
+        values = [np.zeros((h, w, 3), np.float32) for _ in sums]
+        valid = np.zeros((h, w), bool)
+        if self._content is None or h == 0 or w == 0:
+            return values, valid
+        roi = self._roi_under(H_frame_to_ref, (h, w), (h, w))
+        if roi is None:
+            return values, valid
+        M, rows, cols = roi
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        weight = cv2.warpPerspective(self._weight[rows, cols], M, (w, h), flags=flags)
+        valid = weight > _MIN_SAMPLED_WEIGHT
+        for total, out in zip(sums, values, strict=True):
+            warped = cv2.warpPerspective(total[rows, cols], M, (w, h), flags=flags)
+            np.divide(warped, weight[..., None], out=out, where=valid[..., None])
+        return values, valid
+
+    def _accumulate_more(self, M: np.ndarray, valid: np.ndarray, roi: tuple[slice, slice]) -> None:
+        rh, rw = valid.shape
+        for image, total in zip(self._more_images, self._more_sums, strict=True):
+            warped = self._scratch("warped_more", rh, rw, 3, np.float32)
+            cv2.warpPerspective(
+                image, M, (rw, rh), dst=warped, flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+            )  # fmt: skip
+            cv2.accumulate(warped, total[roi], valid)
+
+    def _ensure_buffer(self, need: tuple[int, int, int, int]) -> None:
+        before = (self._buf_x0, self._buf_y0, self._weight.shape)
+        old_x0, old_y0 = self._buf_x0, self._buf_y0
+        super()._ensure_buffer(need)
+        if (self._buf_x0, self._buf_y0, self._weight.shape) == before:
+            return
+        grown = []
+        for total in self._more_sums:
+            new = np.zeros_like(self._sum)
+            if self._content is not None:  # only the content is nonzero: copy just that
+                cx0, cy0, cx1, cy1 = self._content
+                src = (slice(cy0 - old_y0, cy1 - old_y0), slice(cx0 - old_x0, cx1 - old_x0))
+                dst = (
+                    slice(cy0 - self._buf_y0, cy1 - self._buf_y0),
+                    slice(cx0 - self._buf_x0, cx1 - self._buf_x0),
+                )
+                new[dst] = total[src]
+            grown.append(new)
+        self._more_sums = grown
+
+
 class _ShadingMosaic:
     """A low-resolution mosaic (the frames' analysis grids) of the frames' log intensity, each
     frame's gain taken out, and of the shading terms at which they saw each place: what each
     new frame is compared with for the flat-field estimate (`photometry.FlatFieldEstimator`)."""
 
     def __init__(self, config: ComposeConfig) -> None:
-        average = dataclasses.replace(config, blend="average")
-        self._planes = [Canvas(average, 3) for _ in range(2)]  # log I, 4 terms, 1 unused
+        self._planes = _Planes(config, 2)  # log I, 4 terms, 1 unused
         self._terms: tuple[tuple[int, ...], np.ndarray] | None = None
 
     def observe(
@@ -542,11 +631,11 @@ class _ShadingMosaic:
         )
         log_lum = np.log(np.maximum(lum, DARK))
         offset = 0.0
-        if self._planes[0].n_frames:
-            read = [p.content_in_frame(M, lum.shape, 1.0, channel=None) for p in self._planes]
-            ok = valid & read[0][1]
+        if self._planes.n_frames:
+            planes, seen = self._planes.planes_in_frame(M, lum.shape)
+            ok = valid & seen
             if ok.any():
-                mosaic = np.concatenate([values for values, _ in read], axis=2)[ok]
+                mosaic = np.concatenate(planes, axis=2)[ok]
                 ratio = log_lum[ok] - mosaic[:, 0]
                 n = terms.shape[-1]
                 offset = photometry.observe_mosaic(
@@ -555,8 +644,8 @@ class _ShadingMosaic:
         zeros = np.zeros((*lum.shape, 5 - terms.shape[-1]), np.float32)
         stack = np.concatenate([(log_lum - offset)[..., None], terms, zeros], axis=2)
         small_mask = valid.astype(np.uint8) * 255
-        for i, plane in enumerate(self._planes):
-            plane.add(np.ascontiguousarray(stack[..., 3 * i : 3 * i + 3]), M, small_mask)
+        planes = [np.ascontiguousarray(stack[..., 3 * i : 3 * i + 3]) for i in range(2)]
+        self._planes.add_planes(planes, M, small_mask)
 
 
 class LiveCompositor:

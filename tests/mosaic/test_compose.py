@@ -360,3 +360,45 @@ def test_weight_factors_and_float_frames(blend: str) -> None:
     values, valid = canvas.content_in_frame(np.eye(3), (60, 80, 3), 0.5, channel=None)
     assert values.shape == (30, 40, 3) and valid[5:25, 5:35].all()
     np.testing.assert_allclose(values[10:20, 15:25], 130, atol=1)
+
+
+def test_planes_hold_what_separate_canvases_hold():
+    """`_Planes` (the flat-field's shading mosaic) warps each frame's weights once for all its
+    planes: sums, weights and reads are those of one `Canvas` per plane, bit for bit, across
+    buffer growth."""
+    from mosaic.compose import _Planes
+
+    rng = np.random.default_rng(4)
+    config = ComposeConfig(blend="average")
+    planes = _Planes(config, 2)
+    separate = [Canvas(config, 3) for _ in range(2)]
+    h, w = 40, 60
+    for i in range(12):
+        angle, tx, ty = 0.05 * i, 90.0 * i - 50.0 * (i % 3), 40.0 * i * (-1) ** i
+        H = np.array(
+            [
+                [math.cos(angle), -math.sin(angle), tx],
+                [math.sin(angle), math.cos(angle), ty],
+                [1e-4 * (i % 4), -5e-5 * (i % 3), 1.0],
+            ]
+        )
+        images = [rng.normal(0, 1, (h, w, 3)).astype(np.float32) for _ in range(2)]
+        mask = (rng.random((h, w)) > 0.1).astype(np.uint8) * 255
+        if i:
+            read, seen = planes.planes_in_frame(H, (h, w))
+            for canvas, values in zip(separate, read, strict=True):
+                expected, valid = canvas.content_in_frame(H, (h, w), 1.0, channel=None)
+                np.testing.assert_array_equal(seen, valid)
+                np.testing.assert_array_equal(values, expected)
+        planes.add_planes(images, H, mask)
+        for canvas, image in zip(separate, images, strict=True):
+            canvas.add(image, H, mask)
+    sums = [planes._content_views()[0]]
+    x0, y0, x1, y1 = planes._content
+    rows = slice(y0 - planes._buf_y0, y1 - planes._buf_y0)
+    cols = slice(x0 - planes._buf_x0, x1 - planes._buf_x0)
+    sums += [more[rows, cols] for more in planes._more_sums]
+    for canvas, total in zip(separate, sums, strict=True):
+        expected_sum, expected_weight = canvas._content_views()
+        np.testing.assert_array_equal(total, expected_sum)
+        np.testing.assert_array_equal(planes._content_views()[1], expected_weight)
