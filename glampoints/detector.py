@@ -49,7 +49,7 @@ import torch
 from torch import nn
 
 from glampoints.nms import nms_numpy, refine_subpixel
-from glampoints.unet import UNet, pad_to_multiple
+from glampoints.unet import MULTIPLE, UNet, pad_to_multiple
 
 log = logging.getLogger(__name__)
 
@@ -398,6 +398,21 @@ def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, A
     return state, dict(meta)
 
 
+_INPUT_TABLES: dict[str, tuple[np.ndarray, torch.dtype]] = {}
+
+
+def _input_table(precision: str) -> tuple[np.ndarray, torch.dtype]:
+    """(256,) table of the network's input for each grey level, as torch computes it
+    (`uint8 -> dtype, / 255`), in a numpy dtype of the same width for `cv2.LUT` (bfloat16 as
+    int16 bits), and the torch dtype to view the result as."""
+    if precision not in _INPUT_TABLES:
+        dtype = PRECISIONS[precision]
+        levels = torch.arange(256, dtype=torch.uint8).to(dtype).div_(255.0)
+        bits = torch.int16 if dtype == torch.bfloat16 else dtype
+        _INPUT_TABLES[precision] = (levels.view(bits).numpy().copy(), dtype)
+    return _INPUT_TABLES[precision]
+
+
 class GlamPoints:
     """GLAMpoints detector: score map by the UNet, keypoints by NMS (window `nms_window_px`).
 
@@ -514,9 +529,22 @@ class GlamPoints:
             raise ValueError(
                 f"GLAMpoints needs a uint8 HxW grey image, got {image.dtype} {image.shape}"
             )
-        x = torch.from_numpy(np.ascontiguousarray(image)).to(self.device)
-        x = x.to(PRECISIONS[self.precision]).div_(255.0)[None, None]
-        return pad_to_multiple(x).contiguous(memory_format=torch.channels_last)
+        if self.device.type != "cpu":
+            x = torch.from_numpy(np.ascontiguousarray(image)).to(self.device)
+            x = x.to(PRECISIONS[self.precision]).div_(255.0)[None, None]
+            return pad_to_multiple(x).contiguous(memory_format=torch.channels_last)
+        # On the CPU the same values without torch's element-wise kernels, whose thread
+        # hand-offs cost more than the work on a small frame (and far more on a loaded machine):
+        # padded as `pad_to_multiple` pads (reflect = OpenCV's REFLECT_101, or zeros), then
+        # mapped through a table of torch's own uint8 -> dtype -> / 255 for each grey level.
+        h, w = image.shape
+        ph, pw = (-h) % MULTIPLE, (-w) % MULTIPLE
+        if ph or pw:
+            border = cv2.BORDER_REFLECT_101 if ph < h and pw < w else cv2.BORDER_CONSTANT
+            image = cv2.copyMakeBorder(image, 0, ph, 0, pw, border, value=0)
+        table, dtype = _input_table(self.precision)
+        x = torch.from_numpy(cv2.LUT(image, table)).view(dtype)[None, None]
+        return x.contiguous(memory_format=torch.channels_last)
 
     def score_map(self, image: np.ndarray) -> np.ndarray:
         """HxW float32 keypoint probability map of a uint8 HxW grey image."""

@@ -310,3 +310,22 @@ def test_cli_detect(tmp_path, detector):
     bad.write_text("not torch")
     res = runner.invoke(app, ["detect", str(img_path), "--weights", str(bad)])
     assert res.exit_code == 2 and str(bad) in res.stderr and "Traceback" not in res.output
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+@pytest.mark.parametrize("shape", [(350, 660), (352, 672), (16, 16), (5, 7), (40, 9), (37, 768)])
+def test_cpu_input_is_torchs_own_conversion_and_padding(precision, shape):
+    """The CPU input (padded by OpenCV, mapped through a per-grey-level table) is bit for bit
+    what torch's `uint8 -> dtype, / 255` and `pad_to_multiple` give, with every grey level."""
+    from glampoints.detector import PRECISIONS
+    from glampoints.unet import pad_to_multiple
+
+    rng = np.random.default_rng(sum(shape))
+    image = rng.integers(0, 256, shape).astype(np.uint8)
+    image.flat[:256] = np.arange(256)[: image.size]
+    det = GlamPoints(precision=precision)
+    x = torch.from_numpy(image).to(PRECISIONS[precision]).div_(255.0)[None, None]
+    expected = pad_to_multiple(x).contiguous(memory_format=torch.channels_last)
+    got = det._prepare(image)
+    assert got.dtype == expected.dtype and got.shape == expected.shape
+    assert torch.equal(got, expected)
