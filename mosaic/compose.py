@@ -124,6 +124,7 @@ class Canvas:
         # Per-frame weight map cache (frames of one video share shape and often the mask).
         self._cache_key: tuple[tuple[int, int], np.ndarray | None] | None = None
         self._cache_weights: np.ndarray | None = None
+        self._weight_bufs: tuple[np.ndarray, ...] | None = None  # `_frame_weights`' buffers
         ramped = config.blend in ("feather", "best", "multiband")
         self._feathered = ramped and config.feather_px > 0
         self._scratch_bufs: dict[str, np.ndarray] = {}
@@ -435,18 +436,39 @@ class Canvas:
             if same:
                 assert self._cache_weights is not None
                 return self._cache_weights
-        valid = np.full(shape, 1, np.uint8) if mask is None else (mask != 0).astype(np.uint8)
+        # Every map lives in a buffer kept for the frame size (the mask, and so the map, usually
+        # changes at the field-of-view edge from frame to frame): fresh frame-sized arrays
+        # cost page faults worth as much as the distance transform.
+        h, w = shape
+        if self._weight_bufs is None or self._weight_bufs[0].shape != (h + 2, w + 2):
+            self._weight_bufs = (
+                np.zeros((h + 2, w + 2), np.uint8),  # valid, zero-padded by one pixel
+                np.empty((h + 2, w + 2), np.float32),  # its distance transform
+                np.empty((h, w), np.float32),  # the weights
+                np.empty((h, w), np.uint8),  # invalid
+                np.full((h, w), -_INVALID_WEIGHT, np.float32),
+            )
+        padded, dist, weights, invalid, outside = self._weight_bufs
+        valid = padded[1:-1, 1:-1]  # nonzero where valid; the border stays 0
+        if mask is None:
+            valid.fill(1)
+        elif mask.dtype == np.uint8:
+            cv2.compare(mask, 0, cv2.CMP_NE, dst=valid)
+        else:
+            np.copyto(valid, mask != 0)
         if self._feathered:
             feather = np.float32(self._config.feather_px)
-            padded = cv2.copyMakeBorder(valid, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
-            dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_5)[1:-1, 1:-1]
-            weights = np.minimum(dist, feather) / feather
+            cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_5, dst=dist)
+            cv2.min(dist[1:-1, 1:-1], float(feather), dst=weights)
+            np.divide(weights, feather, out=weights)
         else:
-            weights = np.ones(shape, np.float32)
-        weights[valid == 0] = -_INVALID_WEIGHT
+            weights.fill(1.0)
+        if mask is not None:
+            cv2.compare(valid, 0, cv2.CMP_EQ, dst=invalid)
+            cv2.copyTo(outside, invalid, dst=weights)
         self._cache_key = (shape, None if mask is None else mask.copy())
-        self._cache_weights = np.ascontiguousarray(weights, dtype=np.float32)
-        return self._cache_weights
+        self._cache_weights = weights
+        return weights
 
     def _scratch(self, name: str, h: int, w: int, cn: int, dtype: type) -> np.ndarray:
         """An (h, w[, cn]) view of a reused scratch array, grown on demand (never shrunk).
