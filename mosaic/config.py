@@ -130,6 +130,9 @@ class KeyframesConfig:
     promote_coverage_ratio: float = 0.4  # ... or with an inlier coverage under this x its best
     max_keyframes: int = 200  # keyframes whose features stay in memory (oldest dropped first)
     relocalise_candidates: int = 4  # other keyframes tried before a frame is declared failed
+    bridge_frames: int = 3  # the frames right after a promotion also register to ...
+    bridge_keyframes: int = 2  # ... this many keyframes before the new one (pose-graph links
+    # that tie consecutive keyframes through several frames: less drift; 0: off)
     loop_closure: bool = True  # match new keyframes against older overlapping ones too
     loop_min_overlap: float = 0.3  # predicted overlap that makes an old keyframe a loop candidate
     refine: bool = True  # pose-graph refinement of the keyframes at the end of the video
@@ -258,6 +261,8 @@ RANGES: dict[tuple[str, str], Range] = {
     ("keyframes", "promote_coverage_ratio"): FRACTION,
     ("keyframes", "max_keyframes"): AT_LEAST_1,
     ("keyframes", "relocalise_candidates"): AT_LEAST_0,
+    ("keyframes", "bridge_frames"): AT_LEAST_0,
+    ("keyframes", "bridge_keyframes"): AT_LEAST_0,
     ("keyframes", "loop_min_overlap"): FRACTION,
     ("gating", "min_sharpness_ratio"): FRACTION,
     ("gating", "min_fov_fraction"): FRACTION,

@@ -529,7 +529,8 @@ def _tracking_summary(builder: MosaicBuilder) -> dict[str, Any]:
     """Keyframes, relocalisations, loop closures and refinement residuals over all segments."""
     per_segment = [s.tracker.stats() for s in builder._segments]
     totals: dict[str, Any] = {}
-    for key in ("keyframes", "relocalised", "placed_by_previous", "loop_closures", "loop_attempts"):
+    counted = ("keyframes", "relocalised", "placed_by_previous", "loop_closures", "loop_attempts")
+    for key in (*counted, "extra_links"):
         values = [stats[key] for stats in per_segment if key in stats]
         if values:
             totals[key] = int(sum(values))

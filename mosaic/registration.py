@@ -413,13 +413,15 @@ def estimate_motion(
     if fit is None:
         return consensus
     chosen = fit.model
-    if config.perspective_prior > 0 and chosen != "homography" and inliers.sum() >= 4:
+    if inliers.sum() >= 4:
         a, b, w = a_all[inliers], b_all[inliers], w_all[inliers]
         dof = max(2 * len(a) - N_PARAMS[chosen], 1)
         sigma2 = max(fit.rss / dof, 1e-12) * _inflation(a, T)
-        fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
-    if model != "auto":
-        corner_sd = float("nan")
+        if config.perspective_prior > 0 and chosen != "homography":
+            fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
+        if model != "auto":  # the fit's expected corner error (auto's also counts the bias)
+            sigma2 = max(fit.rss / dof, 1e-12) * _inflation(a, T)
+            corner_sd = float(np.sqrt(np.mean(sigma2 * fit.predict(corners)[1])))
     return _checked(
         np.linalg.inv(T) @ fit.M @ T,
         inliers,

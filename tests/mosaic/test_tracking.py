@@ -94,32 +94,38 @@ def test_loop_closure_reduces_drift_at_the_end_of_a_loop(fundus, trip):
     assert keyframes[-1] < 3.0
     assert keyframes[-1] < chain[-1]
     assert keyframes.mean() < chain.mean()
-    # SIFT's links are sub-pixel here: little drift to remove. ORB's links drift (measured:
-    # 3.0 px mean, 1.6 px at the end of the loop without loop closure; 2.3 and 0.9 with it):
-    # the closures must remove a real share of the drift against the truth.
+    # SIFT's links are sub-pixel here: little drift to remove. ORB's links drift: with no link
+    # across the loop (one keyframe tried per frame, no loop closure, no bridging) the end of
+    # the loop is 10 px off (measured 9.99 px, 5.35 mean). The defaults tie the way back to
+    # the way out (loop closures, and every frame's registrations to the old keyframes it
+    # sees) and must remove most of that drift against the truth (measured 0.58 and 2.50).
     orb = {"detector": "orb", "max_keypoints": 600}
-    without = _run(with_overrides(_config("keyframes", loop_closure=False), features=orb), video)
+    bare = _config("keyframes", relocalise_candidates=0, loop_closure=False, bridge_keyframes=0)
+    without = _run(with_overrides(bare, features=orb), video)
     closed = _run(with_overrides(_config("keyframes"), features=orb), video)
     assert closed.report["summary"]["tracking"]["loop_closures"] >= 1
     drift_without = _errors_to_first(without, video_truth)
     drift_with = _errors_to_first(closed, video_truth)
     assert np.isfinite(drift_with).all() and np.isfinite(drift_without).all()
-    assert drift_without.mean() > 2.0  # the premise: there is drift to remove
-    assert drift_with[-1] < 0.75 * drift_without[-1], (drift_with[-1], drift_without[-1])
-    assert drift_with.mean() < 0.85 * drift_without.mean(), (drift_with, drift_without)
+    assert drift_without[-1] > 5.0  # the premise: there is drift to remove
+    assert drift_with[-1] < 0.25 * drift_without[-1], (drift_with[-1], drift_without[-1])
+    assert drift_with.mean() < 0.6 * drift_without.mean(), (drift_with, drift_without)
 
 
-def test_refinement_lowers_the_graph_residual_and_the_error_to_the_truth(trip):
-    frames, truth = trip
+def test_refinement_lowers_the_graph_residual_and_the_error_to_the_truth(fundus):
+    # The trip out and back with the nuisances of real video (noise, blur, gain): the links
+    # carry errors for the graph to reconcile.
+    params = SynthParams(n_frames=30, size=SIZE, seed=7, max_step_px=16.0, nuisances=True)
+    frames, truth = (list(x) for x in zip(*render_frames(fundus, params), strict=True))
     video, video_truth = frames + frames[::-1], truth + truth[::-1]
     result = _run(_config("keyframes"), video)
     refinement = result.report["summary"]["tracking"]["refinement"][0]
     assert refinement["rms_after_px"] < refinement["rms_before_px"]
-    # the refined poses against the truth (measured: 0.25 px mean, 0.62 max; unrefined
-    # 0.29 and 0.75)
+    # the refined poses against the truth (measured: 0.58 px mean, 0.97 max; unrefined
+    # 0.67 and 1.33)
     refined = _errors_to_first(result, video_truth)
     unrefined = _errors_to_first(_run(_config("keyframes", refine=False), video), video_truth)
-    assert refined.mean() < 0.4 and refined.max() < 1.0, refined
+    assert refined.mean() < 0.7 and refined.max() < 1.2, refined
     assert refined.mean() < unrefined.mean() and refined.max() < unrefined.max()
 
 
@@ -214,3 +220,24 @@ class _NoTimer:
     @staticmethod
     def run(stage, fn, *args):
         return fn(*args)
+
+
+def test_bridging_links_lower_the_drift_on_realistic_video(fundus):
+    """Frames right after a promotion also register to the keyframes before it: consecutive
+    keyframes are tied by several links, not one, and less error accumulates (measured on
+    three 60-frame realistic clips: mean error 5.98 / 4.65 / 5.31 px against 8.81 / 4.46 /
+    6.18 without; on the realistic tuning set 4.0 -> 3.1 px)."""
+    with_bridges, without = [], []
+    for seed in (1, 2, 3):
+        params = SynthParams.realistic(n_frames=60, seed=seed)
+        frames, truth = (list(x) for x in zip(*render_frames(fundus, params), strict=True))
+        for bridge, errors in ((2, with_bridges), (0, without)):
+            config = with_overrides(Config(), keyframes={"bridge_keyframes": bridge})
+            result = _run(config, frames)
+            tracking = result.report["summary"]["tracking"]
+            if bridge:
+                assert tracking["extra_links"] >= 10
+            e = errors_to_first(result.report["frames"], truth, params.size)
+            assert np.isfinite(e).mean() > 0.95
+            errors.append(e[np.isfinite(e)].mean())
+    assert sum(with_bridges) < 0.9 * sum(without), (with_bridges, without)
