@@ -212,6 +212,7 @@ class KeyframeTracker:
     LOOP_CANDIDATES = 3  # older keyframes tried per new keyframe
     GOOD_INLIERS = 100  # a registration this strong is not compared with other keyframes
     GRID = 3  # constraint points per side: the chosen model's prediction on a GRID x GRID grid
+    LINK_AGREEMENT_PX = 25.0  # an extra link must place the frame this close to its reference
     MIN_SD_PX = 1.0  # constraint weight = 1 / max(expected corner error, this)
 
     def __init__(self, config: Config):
@@ -296,12 +297,7 @@ class KeyframeTracker:
             self._lost = False
             assert best.keyframe is not None
             tried.update(self._bridge(index, features, shape, timer, tried))
-            prev_index = self._prev[0] if self._prev else None
-            links = tuple(
-                (self._keyframes[k].frame_index, r)
-                for k, r in tried.items()
-                if k != best.keyframe and r.ok and self._keyframes[k].frame_index != prev_index
-            )  # every registration that holds is a constraint; the previous frame's is its own
+            links = self._links(best, tried, shape)
             return dataclasses.replace(
                 best,
                 relocalised=first is not None,
@@ -325,6 +321,27 @@ class KeyframeTracker:
         self._lost = True
         assert first is not None
         return dataclasses.replace(first, **extra)
+
+    def _links(
+        self, best: Track, tried: dict[int, Registration], shape: tuple[int, int]
+    ) -> tuple[tuple[int, Registration], ...]:
+        """Every registration besides the chosen one that holds and places the frame where the
+        chosen one does (within LINK_AGREEMENT_PX at the corners: a wrong registration with
+        enough inliers would otherwise pull the whole graph); the previous frame's registration
+        is a link of its own."""
+        assert best.H_frame_to_ref is not None
+        placed = project(best.H_frame_to_ref, corners(shape))
+        prev_index = self._prev[0] if self._prev else None
+        links = []
+        for k, registration in tried.items():
+            kf = self._keyframes[k]
+            if k == best.keyframe or not registration.ok or kf.frame_index == prev_index:
+                continue
+            assert registration.H_cur_to_prev is not None
+            there = project(kf.H_to_ref @ registration.H_cur_to_prev, corners(shape))
+            if np.linalg.norm(there - placed, axis=1).mean() <= self.LINK_AGREEMENT_PX:
+                links.append((kf.frame_index, registration))
+        return tuple(links)
 
     def _bridge(
         self,
