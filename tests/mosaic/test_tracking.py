@@ -8,7 +8,9 @@ import pytest
 
 from mosaic.config import Config, with_overrides
 from mosaic.pipeline import MosaicBuilder
+from mosaic.registration import Registration
 from mosaic.synth import SynthParams, render_frames
+from mosaic.tracking import Keyframe, KeyframeTracker, Track
 from tests.helpers import errors_to_first
 
 SIZE = (400, 300)
@@ -241,3 +243,25 @@ def test_bridging_links_lower_the_drift_on_realistic_video(fundus):
             assert np.isfinite(e).mean() > 0.95
             errors.append(e[np.isfinite(e)].mean())
     assert sum(with_bridges) < 0.9 * sum(without), (with_bridges, without)
+
+
+def test_an_extra_link_that_places_the_frame_elsewhere_is_not_kept():
+    """A registration to another keyframe becomes a link only if it places the frame where its
+    chosen registration does: a wrong one with enough inliers would pull the whole graph."""
+
+    def shift(dx: float, dy: float) -> np.ndarray:
+        return np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])
+
+    def registration(H: np.ndarray) -> Registration:
+        return Registration(H, 50, 50, np.ones(50, bool), 0.5, None, "similarity")
+
+    tracker = KeyframeTracker(Config())
+    shape = (SIZE[1], SIZE[0])
+    for kid, dx in enumerate((0.0, 40.0, 80.0)):  # keyframes at x = 0, 40, 80 on the map
+        tracker._keyframes[kid] = Keyframe(kid, 10 * kid, None, shape, shift(dx, 0))
+    placed = shift(100.0, 5.0)  # the frame, registered to keyframe 2
+    best = Track(placed, registration(shift(20.0, 5.0)), keyframe=2)
+    agrees = registration(shift(60.0 + 8.0, 5.0))  # to keyframe 1: 8 px from the placement
+    wrong = registration(shift(100.0, 65.0))  # to keyframe 0: 60 px off
+    links = tracker._links(best, {0: wrong, 1: agrees, 2: best.registration}, shape)
+    assert [index for index, _ in links] == [10]
