@@ -218,10 +218,8 @@ class Canvas:
         roi = self._roi_under(H_frame_to_ref, (fh, fw), (h, w))
         if roi is None:
             return values, valid
-        M, rows, cols = roi
-        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        warped_sum = cv2.warpPerspective(self._sum[rows, cols], M, (w, h), flags=flags)
-        weight = cv2.warpPerspective(self._weight[rows, cols], M, (w, h), flags=flags)
+        warped_sum = self._sampled(self._sum, roi, (w, h))
+        weight = self._sampled(self._weight, roi, (w, h))
         if channel is not None and warped_sum.ndim == 3:
             warped_sum = warped_sum[..., min(channel, warped_sum.shape[2] - 1)]
         elif channel is None:
@@ -234,6 +232,16 @@ class Canvas:
             where=valid if channel is not None else valid[..., None],
         )
         return values, valid
+
+    @staticmethod
+    def _sampled(
+        array: np.ndarray, roi: tuple[np.ndarray, slice, slice], size: tuple[int, int]
+    ) -> np.ndarray:
+        """A canvas array seen from the frame: its `roi` (`_roi_under`) warped bilinearly
+        into the frame's (w, h) = `size`."""
+        M, rows, cols = roi
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        return cv2.warpPerspective(array[rows, cols], M, size, flags=flags)
 
     def _roi_under(
         self, H_frame_to_ref: np.ndarray, frame: tuple[int, int], out: tuple[int, int]
@@ -579,12 +587,10 @@ class _Planes(Canvas):
         roi = self._roi_under(H_frame_to_ref, (h, w), (h, w))
         if roi is None:
             return values, valid
-        M, rows, cols = roi
-        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        weight = cv2.warpPerspective(self._weight[rows, cols], M, (w, h), flags=flags)
+        weight = self._sampled(self._weight, roi, (w, h))
         valid = weight > _MIN_SAMPLED_WEIGHT
         for total, out in zip(sums, values, strict=True):
-            warped = cv2.warpPerspective(total[rows, cols], M, (w, h), flags=flags)
+            warped = self._sampled(total, roi, (w, h))
             np.divide(warped, weight[..., None], out=out, where=valid[..., None])
         return values, valid
 

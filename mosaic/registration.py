@@ -416,11 +416,12 @@ def estimate_motion(
     if inliers.sum() >= 4:
         a, b, w = a_all[inliers], b_all[inliers], w_all[inliers]
         dof = max(2 * len(a) - N_PARAMS[chosen], 1)
-        sigma2 = max(fit.rss / dof, 1e-12) * _inflation(a, T)
+        inflation = _inflation(a, T)
         if config.perspective_prior > 0 and chosen != "homography":
+            sigma2 = max(fit.rss / dof, 1e-12) * inflation
             fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
         if model != "auto":  # the fit's expected corner error (auto's also counts the bias)
-            sigma2 = max(fit.rss / dof, 1e-12) * _inflation(a, T)
+            sigma2 = max(fit.rss / dof, 1e-12) * inflation
             corner_sd = float(np.sqrt(np.mean(sigma2 * fit.predict(corners)[1])))
     return _checked(
         np.linalg.inv(T) @ fit.M @ T,

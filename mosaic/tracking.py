@@ -228,6 +228,11 @@ class KeyframeTracker:
         self._lost = False  # the last frame failed against every candidate
         self._lost_cursor = 0
 
+    @property
+    def _prev_index(self) -> int | None:
+        """Input index of the last committed frame (None before the first)."""
+        return self._prev[0] if self._prev else None
+
     # -- proposing a placement -------------------------------------------------------------
     def _overlaps(self, H_frame_to_ref: np.ndarray, shape: tuple[int, int]) -> dict[int, float]:
         """Fraction of the frame (placed by `H_frame_to_ref`) inside each live keyframe."""
@@ -277,7 +282,7 @@ class KeyframeTracker:
             assert kf.features is not None
             matches, registration = _register(kf.features, features, self._config, timer, shape)
             tried[kf.id] = registration
-            if kf.frame_index == (self._prev[0] if self._prev else None):
+            if kf.frame_index == self._prev_index:
                 previous, previous_matches = registration, matches
             if not registration.ok:
                 if first is None:
@@ -331,11 +336,10 @@ class KeyframeTracker:
         is a link of its own."""
         assert best.H_frame_to_ref is not None
         placed = project(best.H_frame_to_ref, corners(shape))
-        prev_index = self._prev[0] if self._prev else None
         links = []
         for k, registration in tried.items():
             kf = self._keyframes[k]
-            if k == best.keyframe or not registration.ok or kf.frame_index == prev_index:
+            if k == best.keyframe or not registration.ok or kf.frame_index == self._prev_index:
                 continue
             assert registration.H_cur_to_prev is not None
             there = project(kf.H_to_ref @ registration.H_cur_to_prev, corners(shape))
@@ -361,11 +365,10 @@ class KeyframeTracker:
         newest = self._keyframes[ids[-1]]
         if not k.bridge_keyframes or index - newest.frame_index > k.bridge_frames:
             return {}
-        prev_index = self._prev[0] if self._prev else None
         out = {}
         for kid in reversed(ids[-1 - k.bridge_keyframes : -1]):
             kf = self._keyframes[kid]
-            if kid in tried or kf.features is None or kf.frame_index == prev_index:
+            if kid in tried or kf.features is None or kf.frame_index == self._prev_index:
                 continue  # the previous frame's registration is its own link
             out[kid] = _register(kf.features, features, self._config, timer, shape)[1]
         return out

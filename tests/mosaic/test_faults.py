@@ -52,21 +52,27 @@ runner = CliRunner()
 # --------------------------------------------------------------------------------------------
 
 
+def _clip(tmp_path_factory, name: str, **params) -> Path:
+    """A synthetic video of the shipped sample (`SynthParams(**params)`) in a fresh folder."""
+    out = tmp_path_factory.mktemp("faults") / name
+    write_synthetic_video(SAMPLE_IMAGE, out, SynthParams(**params))
+    return out
+
+
 @pytest.fixture(scope="module")
 def long_clip(tmp_path_factory) -> Path:
     """80 frames of 200x160: a few seconds of streaming, long enough to signal mid-run."""
-    out = tmp_path_factory.mktemp("faults") / "clip.mp4"
-    params = SynthParams(n_frames=N_FRAMES, size=(200, 160), seed=3, max_step_px=4.0)
-    write_synthetic_video(SAMPLE_IMAGE, out, params)
-    return out
+    return _clip(
+        tmp_path_factory, "clip.mp4", n_frames=N_FRAMES, size=(200, 160), seed=3, max_step_px=4.0
+    )
 
 
 @pytest.fixture(scope="module")
 def short_clip(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("faults") / "short.mp4"
-    params = SynthParams(n_frames=8, size=(200, 160), seed=4, max_step_px=4.0, nuisances=False)
-    write_synthetic_video(SAMPLE_IMAGE, out, params)
-    return out
+    return _clip(
+        tmp_path_factory, "short.mp4",
+        n_frames=8, size=(200, 160), seed=4, max_step_px=4.0, nuisances=False,
+    )  # fmt: skip
 
 
 class Running:
@@ -470,10 +476,10 @@ def _numeric_defaults() -> dict[tuple[str, str], float]:
 
 @pytest.fixture(scope="module")
 def tiny_clip(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("faults") / "tiny"
-    params = SynthParams(n_frames=4, size=(160, 128), seed=5, max_step_px=3.0, nuisances=False)
-    write_synthetic_video(SAMPLE_IMAGE, out, params)
-    return out
+    return _clip(
+        tmp_path_factory, "tiny",
+        n_frames=4, size=(160, 128), seed=5, max_step_px=3.0, nuisances=False,
+    )  # fmt: skip
 
 
 def test_every_value_a_config_accepts_runs(tiny_clip, tmp_path):
