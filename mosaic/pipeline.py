@@ -25,7 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mosaic.compose import Canvas, LiveCompositor, render_segments
+from mosaic.compose import Canvas, LiveCompositor, photometry_report, render_segments
 from mosaic.config import Config, config_to_dict
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features, to_frame_pixels
@@ -72,6 +72,7 @@ class FrameRecord:
     reference: int | None = None  # input index of the frame it was registered against
     quality: float = float("nan")  # agreement with the mosaic under it (mosaic.quality)
     flagged: bool = False  # quality under [compose] quality_threshold: likely misregistered
+    gain: float | None = None  # exposure gain the frame was composed with (None: none)
     stage_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -189,6 +190,7 @@ class MosaicBuilder:
         self._live_quality = not isinstance(self.viewer, NullViewer) or not rerenders
         # the live canvas is corrected where it is seen or kept (else the re-render redoes it)
         self._compositor = LiveCompositor(compose, self._photometry, correct=self._live_quality)
+        self._gain_solution: str | None = "live" if self._live_quality else None
         self._started = time.perf_counter()
 
     @property
@@ -362,7 +364,7 @@ class MosaicBuilder:
             quality = timer.run("compose", frame_vs_canvas, canvas, image, H_frame_to_ref, mask)
         try:
             add = self._compositor.add
-            timer.run("compose", add, segment.canvas, image, H_frame_to_ref, mask)
+            record.gain = timer.run("compose", add, segment.canvas, image, H_frame_to_ref, mask)
         except CanvasLimitError as exc:
             return str(exc)
         segment.tracker.commit(record.index, features, prepared.gray.shape, track)
@@ -441,7 +443,9 @@ class MosaicBuilder:
             segment.canvas = canvas
             for record in segment.records:
                 record.H_frame_to_ref = segment.refined_poses[record.index]  # type: ignore[index]
+                record.gain = result.gains.get(record.index)
                 self._set_quality(record, quality.get(record.index, float("nan")))
+            self._gain_solution = "global"
 
     def finish(self, interrupted: bool = False, reread: Reread | None = None) -> MosaicResult:
         """Refine, render the segment(s) and build the report (also after an interruption).
@@ -508,6 +512,7 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict
         else round(record.reproj_error_px, 3),
         "quality": None if np.isnan(record.quality) else round(record.quality, 3),
         "flagged": record.flagged,
+        "gain": None if record.gain is None else round(record.gain, 4),
         "time_ms": round(record.time_ms, 2),
     }
     if record.status == REGISTERED and record.reference is not None:
@@ -598,6 +603,13 @@ def build_report(
             }
             for s in mosaics
         ],
+        "compose": photometry_report(
+            builder.config.compose,
+            builder._photometry,
+            builder._compositor.frame_shape,
+            {r.index: r.gain for r in records if r.gain is not None},
+            builder._gain_solution,
+        ),
         "config": config_to_dict(builder.config),
         "frames": [_frame_entry(r, by_index) for r in records],
     }
