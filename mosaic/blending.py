@@ -8,7 +8,8 @@ image mosaics", 1983). Fine detail then comes from the frames with the largest w
 place (sharp seams, no ghosting), coarse shading from a wide neighbourhood (no visible steps).
 
 Memory: the per-level accumulators hold (channels + 1) floats per canvas pixel over all
-levels (4/3 of the canvas); frames are never kept. The pixels outside a frame's valid region
+levels (4/3 of the canvas); frames are never kept, and the collapse goes strip by strip
+(`render_rows`), never through whole float images. The pixels outside a frame's valid region
 are filled from the valid ones (push-pull) before its pyramid is built, so a dark field-of-view
 border never leaks into the coarse levels.
 """
@@ -72,6 +73,13 @@ class LaplacianBlender:
         """Memory held by the accumulators."""
         return sum(a.nbytes for a in self._num) + sum(a.nbytes for a in self._den)
 
+    @staticmethod
+    def bytes_for(height: int, width: int, channels: int, levels: int = 5) -> int:
+        """`nbytes` of a blender of these arguments, without making one."""
+        step = 1 << levels
+        ph, pw = -(-height // step) * step, -(-width // step) * step
+        return sum(4 * (channels + 1) * (ph >> k) * (pw >> k) for k in range(levels + 1))
+
     def add(
         self,
         image: np.ndarray,
@@ -132,15 +140,32 @@ class LaplacianBlender:
 
     def render(self) -> np.ndarray:
         """The blended canvas, float32 (height, width, C); 0 where no frame had weight."""
-        out: np.ndarray | None = None
-        for k in range(self.levels, -1, -1):
-            den = self._den[k][..., None]
-            level = np.divide(self._num[k], den, out=np.zeros_like(self._num[k]), where=den > _EPS)
-            if out is None:
-                out = level
-            else:
-                h, w = level.shape[:2]
-                up = cv2.pyrUp(out, dstsize=(w, h)).reshape(h, w, self.channels)
-                out = up + level
-        assert out is not None
-        return out[: self.height, : self.width]
+        return self.render_rows(0, self.height)
+
+    def render_rows(self, y0: int, y1: int) -> np.ndarray:
+        """Rows [y0, y1) of `render`, float32 (y1 - y0, width, C), identical to its rows, in
+        memory for those rows only (a few rows more per level): a large canvas is collapsed
+        strip by strip, never as whole float images."""
+        y0, y1 = max(y0, 0), min(y1, self.height)
+        if y1 <= y0:
+            return np.zeros((0, self.width, self.channels), np.float32)
+        return self._collapse(0, y0, y1)[:, : self.width]
+
+    def _collapse(self, k: int, a: int, b: int) -> np.ndarray:
+        """Rows [a, b) of level k of the collapsed pyramid (the blended image at 1 / 2^k).
+
+        Row 2i of `cv2.pyrUp` reads coarse rows i - 1 .. i + 1, row 2i + 1 rows i .. i + 1:
+        the coarse rows [a // 2 - 1, (b + 1) // 2 + 1) give rows [a, b) exactly, the rows at
+        the strip's own edges (where pyrUp reflects) falling outside them; at the canvas' edges
+        the strip's border is the canvas' border, reflected alike."""
+        den = self._den[k][a:b, :, None]
+        num = self._num[k][a:b]
+        level = np.divide(num, den, out=np.zeros_like(num), where=den > _EPS)
+        if k == self.levels:
+            return level
+        ca, cb = max(a // 2 - 1, 0), min((b + 1) // 2 + 1, self._den[k + 1].shape[0])
+        coarse = self._collapse(k + 1, ca, cb)
+        w = self._den[k].shape[1]
+        up = cv2.pyrUp(coarse, dstsize=(w, 2 * (cb - ca))).reshape(-1, w, self.channels)
+        level += up[a - 2 * ca : b - 2 * ca]
+        return level

@@ -71,6 +71,10 @@ log = logging.getLogger(__name__)
 
 BLENDS = ("feather", "average", "last", "multiband", "best")
 MULTIBAND_LEVELS = 5  # Laplacian levels: seams are smoothed over ~2^5 = 32 px
+# multiband's pyramids take 21 bytes a canvas pixel (3 channels) on top of the canvas' 16: a
+# canvas needing more than this (~25 Mpx, 5000x5000) feathers instead, with a warning
+MULTIBAND_MAX_BYTES = 512 * 2**20
+RENDER_ROWS = 256  # rows of a strip of `Canvas.render`
 # feather / average / multiband: weight x min(1, relative sharpness / knee)^power
 SHARPNESS_KNEE = 0.8  # frames at least this sharp (relative to the others there) count fully
 SHARPNESS_POWER = 4.0  # ... blurrier ones fall off fast: half the knee weighs 1/16
@@ -89,6 +93,20 @@ _INVALID_WEIGHT = 1.0e30
 _EDGE_EPS = 1e-6  # tolerance when rounding a warped bounding box to whole pixels
 _MIN_W = 1e-9  # homogeneous coordinate under which a corner counts as sent to infinity
 _MIN_SAMPLED_WEIGHT = 1e-6  # resampled accumulated weight above which a pixel counts as covered
+
+
+def _multiband_fits(height: int, width: int, channels: int) -> bool:
+    """Whether multiband's pyramids for a canvas of (height, width) stay within
+    `MULTIBAND_MAX_BYTES`; if not, say so: the canvas feathers instead."""
+    need = LaplacianBlender.bytes_for(height, width, channels, MULTIBAND_LEVELS)
+    if need <= MULTIBAND_MAX_BYTES:
+        return True
+    log.warning(
+        "a %dx%d mosaic is blended by feathering instead of multiband: its pyramids would "
+        "take %.0f MB, over %.0f MB",
+        width, height, need / 2**20, MULTIBAND_MAX_BYTES / 2**20,
+    )  # fmt: skip
+    return False
 
 
 def _translation(tx: float, ty: float) -> np.ndarray:
@@ -137,7 +155,7 @@ class Canvas:
             self._buf_x0, self._buf_y0 = x0, y0
             self._sum = np.zeros((y1 - y0, x1 - x0, channels), np.float32)
             self._weight = np.zeros((y1 - y0, x1 - x0), np.float32)
-            if config.blend == "multiband":
+            if config.blend == "multiband" and _multiband_fits(y1 - y0, x1 - x0, channels):
                 self._blender = LaplacianBlender(y1 - y0, x1 - x0, channels, MULTIBAND_LEVELS)
                 self._blend_origin = (x0, y0)
 
@@ -169,20 +187,30 @@ class Canvas:
         return self._placement(H_frame_to_ref, frame_shape)[1] is None
 
     def render(self) -> np.ndarray:
-        """Blended mosaic, uint8 (H, W, C); pixels no frame covered are 0."""
+        """Blended mosaic, uint8 (H, W, C); pixels no frame covered are 0. Rendered in strips
+        of `RENDER_ROWS` rows: no float image of the whole canvas is made."""
         sum_c, weight_c = self._content_views()
+        out = np.zeros(sum_c.shape, np.uint8)
+        for r0 in range(0, out.shape[0], RENDER_ROWS):
+            r1 = min(r0 + RENDER_ROWS, out.shape[0])
+            out[r0:r1] = self._render_rows(sum_c[r0:r1], weight_c[r0:r1], r0)
+        return out
+
+    def _render_rows(self, sum_c: np.ndarray, weight_c: np.ndarray, r0: int) -> np.ndarray:
+        """uint8 rows of `render` from the content's rows r0 .. r0 + len(`sum_c`)."""
         out = np.zeros(sum_c.shape, np.float32)
         covered = weight_c > 0
         np.divide(sum_c, weight_c[..., None], out=out, where=covered[..., None])
         if self._blender is not None and self._content is not None:
             # the multiband result over the blender's extent (all of the content, unless a
             # frame was placed outside the extent it was made for)
-            x0, y0, x1, y1 = self._content
+            x0, cy0, x1, _ = self._content
+            y0, y1 = cy0 + r0, cy0 + r0 + len(out)  # the strip, in reference coordinates
             ox, oy = self._blend_origin
             ix0, iy0 = max(x0, ox), max(y0, oy)
             ix1, iy1 = min(x1, ox + self._blender.width), min(y1, oy + self._blender.height)
             if ix1 > ix0 and iy1 > iy0:
-                blended = self._blender.render()[iy0 - oy : iy1 - oy, ix0 - ox : ix1 - ox]
+                blended = self._blender.render_rows(iy0 - oy, iy1 - oy)[:, ix0 - ox : ix1 - ox]
                 inner = (slice(iy0 - y0, iy1 - y0), slice(ix0 - x0, ix1 - x0))
                 np.copyto(out[inner], blended, where=covered[inner][..., None])
         np.rint(out, out=out)

@@ -402,3 +402,56 @@ def test_planes_hold_what_separate_canvases_hold():
         expected_sum, expected_weight = canvas._content_views()
         np.testing.assert_array_equal(total, expected_sum)
         np.testing.assert_array_equal(planes._content_views()[1], expected_weight)
+
+
+def _random_canvas(blend: str = "multiband") -> Canvas:
+    """A canvas of known extent with 15 random frames at subpixel placements, weighted."""
+    rng = np.random.default_rng(11)
+    canvas = Canvas(ComposeConfig(blend=blend), extent=(-20, -10, 430, 300))
+    for i in range(15):
+        image = rng.uniform(0, 255, (90, 120, 3)).astype(np.float32)
+        H = similarity(3.0 * i, 1.0 + 0.01 * i, 25.3 * i - 10, 17.7 * (i % 7))
+        canvas.add(image, H, None, rng.uniform(0.5, 2.0, (90, 120)).astype(np.float32))
+    return canvas
+
+
+def test_multiband_renders_strip_by_strip_exactly(monkeypatch) -> None:
+    """The collapse by strips (`RENDER_ROWS`, `LaplacianBlender.render_rows`) gives the whole
+    canvas' collapse pixel for pixel, whatever the strip's height."""
+    canvas = _random_canvas()
+    blender = canvas._blender
+    assert blender is not None
+    # the whole pyramid collapsed at once, as the blender did before it rendered by strips
+    out = None
+    for k in range(blender.levels, -1, -1):
+        den = blender._den[k][..., None]
+        level = np.divide(blender._num[k], den, out=np.zeros_like(blender._num[k]), where=den > 0)
+        if out is not None:
+            h, w = level.shape[:2]
+            level = level + cv2.pyrUp(out, dstsize=(w, h)).reshape(h, w, 3)
+        out = level
+    assert out is not None
+    whole = out[: blender.height, : blender.width]
+    np.testing.assert_array_equal(blender.render(), whole)
+    for y0, rows in [(0, 1), (3, 2), (31, 33), (64, 64), (100, 7), (blender.height - 5, 9)]:
+        np.testing.assert_array_equal(blender.render_rows(y0, y0 + rows), whole[y0 : y0 + rows])
+    monkeypatch.setattr("mosaic.compose.RENDER_ROWS", 10**6)
+    reference = canvas.render()
+    for rows in (1, 7, 64):
+        monkeypatch.setattr("mosaic.compose.RENDER_ROWS", rows)
+        np.testing.assert_array_equal(canvas.render(), reference)
+
+
+def test_multiband_over_its_memory_budget_feathers_with_a_warning(monkeypatch, caplog) -> None:
+    from mosaic.blending import LaplacianBlender
+
+    need = LaplacianBlender.bytes_for(310, 450, 3)
+    monkeypatch.setattr("mosaic.compose.MULTIBAND_MAX_BYTES", need)
+    assert _random_canvas()._blender is not None
+    monkeypatch.setattr("mosaic.compose.MULTIBAND_MAX_BYTES", need - 1)
+    with caplog.at_level(logging.WARNING, logger="mosaic.compose"):
+        canvas = _random_canvas()
+    assert canvas._blender is None
+    assert "feathering instead of multiband" in caplog.text
+    # what it renders is the feathered mosaic of the same frames
+    np.testing.assert_array_equal(canvas.render(), _random_canvas("feather").render())
