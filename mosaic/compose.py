@@ -71,9 +71,10 @@ log = logging.getLogger(__name__)
 
 BLENDS = ("feather", "average", "last", "multiband", "best")
 MULTIBAND_LEVELS = 5  # Laplacian levels: seams are smoothed over ~2^5 = 32 px
-# multiband's pyramids take 21 bytes a canvas pixel (3 channels) on top of the canvas' 16: a
-# canvas needing more than this (~25 Mpx, 5000x5000) feathers instead, with a warning
-MULTIBAND_MAX_BYTES = 512 * 2**20
+# multiband's pyramids take 21 bytes a canvas pixel (3 channels) on top of the canvas' 16 and
+# the image's 3: a canvas needing more than this (~12.5 Mpx, 3500x3500; the re-render's peak
+# then ~0.55 GB, docs/compose.md) feathers instead (19 bytes a pixel), with a warning
+MULTIBAND_MAX_BYTES = 256 * 2**20
 RENDER_ROWS = 256  # rows of a strip of `Canvas.render`
 # feather / average / multiband: weight x min(1, relative sharpness / knee)^power
 SHARPNESS_KNEE = 0.8  # frames at least this sharp (relative to the others there) count fully
@@ -165,6 +166,14 @@ class Canvas:
     def n_frames(self) -> int:
         """Number of frames added so far."""
         return self._n_frames
+
+    @property
+    def blend(self) -> str:
+        """The blend applied: `[compose] blend`, but `feather` for `multiband` without its
+        pyramids (a growing canvas, or one over `MULTIBAND_MAX_BYTES`)."""
+        if self._config.blend == "multiband" and self._blender is None:
+            return "feather"
+        return self._config.blend
 
     @property
     def shape(self) -> tuple[int, int]:

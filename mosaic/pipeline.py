@@ -600,6 +600,7 @@ def build_report(
                 "frames": s.n_frames,
                 "width": int(s.image.shape[1]),
                 "height": int(s.image.shape[0]),
+                "blend": builder._segments[s.index].canvas.blend,
             }
             for s in mosaics
         ],

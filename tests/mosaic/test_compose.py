@@ -451,7 +451,7 @@ def test_multiband_over_its_memory_budget_feathers_with_a_warning(monkeypatch, c
     monkeypatch.setattr("mosaic.compose.MULTIBAND_MAX_BYTES", need - 1)
     with caplog.at_level(logging.WARNING, logger="mosaic.compose"):
         canvas = _random_canvas()
-    assert canvas._blender is None
+    assert canvas._blender is None and canvas.blend == "feather"
     assert "feathering instead of multiband" in caplog.text
     # what it renders is the feathered mosaic of the same frames
     np.testing.assert_array_equal(canvas.render(), _random_canvas("feather").render())

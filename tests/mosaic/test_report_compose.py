@@ -117,6 +117,7 @@ def test_report_names_injected_side_bands(banded) -> None:
     assert bands["columns"] == [[0, bands["left"]], [W - bands["right"], W]]
     assert bands["rows"] == []
     assert banded["compose"]["frame_size"] == [W, H]
+    assert banded["segments"][0]["blend"] == "multiband"
 
 
 def test_report_compose_section_is_strict_json(vignetted, banded) -> None:
