@@ -575,7 +575,10 @@ class GlamPoints:
         if mask is not None:
             if mask.shape[:2] != s.shape:
                 raise ValueError(f"mask shape {mask.shape} differs from image shape {s.shape}")
-            masked = np.where(mask > 0, s, np.float32(-np.inf))
+            if mask.dtype == np.uint8 and mask.ndim == 2:  # copied under the mask: one pass
+                masked = cv2.copyTo(s, mask, np.full(s.shape, -np.inf, np.float32))
+            else:
+                masked = np.where(mask > 0, s, np.float32(-np.inf))
         else:
             masked = s
         xy, scores = nms_numpy(masked, self.nms_window_px, self.score_threshold, self.max_keypoints)

@@ -51,17 +51,17 @@ def field_of_view_mask(gray: np.ndarray, threshold: int, erode_px: int) -> np.nd
     the view (vessels, haemorrhages) stay inside because holes are filled.
     """
     small = cv2.GaussianBlur(gray, (0, 0), 2.0)
-    mask = (small > threshold).astype(np.uint8) * 255
+    _, mask = cv2.threshold(small, threshold, 255, cv2.THRESH_BINARY)  # small > threshold
     if not mask.any():
         return np.full_like(gray, 255)
     # Fill holes: anything not reachable from the border through dark pixels is inside the view.
-    n, labels = cv2.connectedComponents(255 - mask, connectivity=4)
+    n, labels = cv2.connectedComponents(cv2.bitwise_not(mask), connectivity=4)
     touches_border = np.zeros(n, dtype=bool)
     edge = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
     touches_border[edge] = True
     touches_border[0] = True  # label 0 is the bright region itself
-    holes = ~touches_border[labels]
-    mask[holes] = 255
+    if not touches_border.all():  # most frames have no hole: no pass over the labels
+        mask[~touches_border[labels]] = 255
     if erode_px > 0:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
         mask = cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=255)
