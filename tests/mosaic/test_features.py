@@ -2,9 +2,18 @@ import cv2
 import numpy as np
 import pytest
 
+import mosaic.features as features_module
 from mosaic.config import Config, FeaturesConfig, with_overrides
 from mosaic.errors import ConfigError
-from mosaic.features import DETECTORS, MAX_DETECTOR_SIZE_PX, FeatureExtractor, resolve_precision
+from mosaic.features import (
+    CONTRAST_WINDOW_PX,
+    DETECTORS,
+    MAX_DETECTOR_SIZE_PX,
+    MIN_LOCAL_CONTRAST,
+    FeatureExtractor,
+    _textured,
+    resolve_precision,
+)
 from mosaic.pipeline import register_pair
 from mosaic.preprocess import prepare
 from tests.helpers import corner_error, crop_pair, similarity
@@ -219,3 +228,32 @@ def test_blank_images_do_not_register(fundus, name):
         assert registration.reason == f"no textured keypoints in the {blank}"
     # the retina itself keeps its points
     assert len(extractor(prepare(fundus, config.preprocess))) > 100
+
+
+@pytest.mark.parametrize("shape", [(350, 660), (40, 33), (5, 5), (1, 7)])
+def test_textured_equals_the_variance_of_the_blurred_float_image(shape):
+    """`_textured` sums the window in integers; it must decide exactly as the float32 local
+    variance `blur(g^2) - blur(g)^2` (cv2.blur, reflected borders) that it replaces."""
+    rng = np.random.default_rng(sum(shape))
+    gray = rng.integers(0, 256, shape, dtype=np.uint8)
+    gray[: shape[0] // 2] //= 64  # low-contrast rows: variances near the threshold
+    gray[:, : shape[1] // 3] = 255  # a flat, saturated band
+    h, w = shape
+    xy = np.stack([rng.uniform(-2, w + 1, 500), rng.uniform(-2, h + 1, 500)], 1).astype("f4")
+    g = gray.astype(np.float32)
+    k = (CONTRAST_WINDOW_PX, CONTRAST_WINDOW_PX)
+    var = cv2.blur(g * g, k) - cv2.blur(g, k) ** 2
+    ix = np.clip(np.rint(xy[:, 0]).astype(int), 0, w - 1)
+    iy = np.clip(np.rint(xy[:, 1]).astype(int), 0, h - 1)
+    expected = var[iy, ix] >= MIN_LOCAL_CONTRAST**2
+    assert 0 < expected.sum() < len(xy) or min(shape) < 100  # both sides of the threshold
+    np.testing.assert_array_equal(_textured(gray, xy), expected)
+
+
+def test_keep_freed_memory_sets_glibc_malloc_once_unless_the_user_tuned_it(monkeypatch):
+    if not features_module._glibc():
+        pytest.skip("malloc is not glibc's here")
+    assert features_module.keep_freed_memory() is features_module.keep_freed_memory()
+    monkeypatch.setattr(features_module, "_freed_memory_kept", None)
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "131072")
+    assert features_module.keep_freed_memory() is False  # the user's own setting stays
