@@ -6,7 +6,9 @@ Frames arrive one at a time with their homography into the segment's reference f
 (`sum_weighted` HxWxC and `weight` HxW) over a buffer that grows with slack as frames leave it.
 Each frame is warped only into its own bounding box, so the cost of `add` does not grow with
 the canvas. A canvas of known extent (the re-render, where all poses are known) can also
-blend multiband (`mosaic.blending`); a growing one falls back to feathering.
+blend multiband (`mosaic.blending`); a growing one falls back to feathering, and so does one
+whose pyramids would take more than `MULTIBAND_MAX_BYTES`. `render` goes by strips of rows:
+no float image of the whole canvas is made.
 
 Blend modes (`[compose] blend`): `average`, `feather` (weights ramp up over `feather_px` from
 the frame's border and field-of-view edge), `last` (later frames on top), `best` (each place
