@@ -1105,8 +1105,11 @@ def _flatfield_report(photometry: VideoPhotometry) -> dict[str, object] | None:
     yn = (ys - (h - 1) / 2) / (h / 2)
     values = profile[ys, xs].astype(np.float64)
     fitted = values > FlatFieldEstimator.MIN_PROFILE * 1.001  # not where it was clipped
-    design = np.column_stack([shading_terms(xn, yn)[fitted], np.ones(int(fitted.sum()))])
-    coef = np.linalg.lstsq(design, np.log(values[fitted]), rcond=None)[0]
+    coefficients = None  # (a profile clipped almost everywhere has none)
+    if fitted.sum() >= 10:
+        design = np.column_stack([shading_terms(xn, yn)[fitted], np.ones(int(fitted.sum()))])
+        coef = np.linalg.lstsq(design, np.log(values[fitted]), rcond=None)[0]
+        coefficients = [round(float(c), 4) for c in coef[:-1]]
 
     def at(x: float, y: float) -> float:  # bilinear, at normalised (x, y) of pixel centres
         px = (w - 1) / 2 + x * (w - 1) / 2
@@ -1116,7 +1119,7 @@ def _flatfield_report(photometry: VideoPhotometry) -> dict[str, object] | None:
     centre = at(0.0, 0.0)
     return {
         "model": "log shading = c . (x^2, xy, y^2, r^4), x, y in [-1, 1] over the frame",
-        "coefficients": [round(float(c), 4) for c in coef[:-1]],
+        "coefficients": coefficients,
         "relative_to_centre": {name: round(at(x, y) / centre, 4) for name, x, y in _FLAT_PLACES},
         "min_relative_to_centre": round(float(profile.min()) / centre, 4),
         "frames": photometry.flat_estimator.n_frames,
