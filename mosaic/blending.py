@@ -125,14 +125,14 @@ class LaplacianBlender:
         for k in range(self.levels + 1):
             rows = slice(by0 >> k, by1 >> k)
             cols = slice(bx0 >> k, bx1 >> k)
+            # in place where it can be: a large frame's box is tens of MB a buffer
             if k < self.levels:
                 down = cv2.pyrDown(gauss).reshape(-1, gauss.shape[1] // 2, self.channels)
-                band = gauss - cv2.pyrUp(down, dstsize=(gauss.shape[1], gauss.shape[0])).reshape(
-                    gauss.shape
-                )
+                up = cv2.pyrUp(down, dstsize=(gauss.shape[1], gauss.shape[0]))
+                band = np.subtract(gauss, up.reshape(gauss.shape), out=up.reshape(gauss.shape))
             else:
-                band = gauss
-            self._num[k][rows, cols] += band * weights[..., None]
+                band = gauss  # not read again
+            self._num[k][rows, cols] += np.multiply(band, weights[..., None], out=band)
             self._den[k][rows, cols] += weights
             if k < self.levels:
                 gauss = down
