@@ -7,9 +7,7 @@ choice for fundus images) unless `descriptor = "native"` asks for the detector's
 
 from __future__ import annotations
 
-import ctypes
 import logging
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -278,54 +276,10 @@ def make_detector(config: FeaturesConfig) -> Detector:
     return factory(config)
 
 
-# glibc's malloc settings (malloc.h) and the values `keep_freed_memory` gives them
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-MMAP_THRESHOLD_BYTES = 32 << 20  # blocks below this come from the heap (glibc's dynamic cap)
-TRIM_THRESHOLD_BYTES = 64 << 20  # free memory at the heap's top kept up to this (2x, as glibc)
-_SETTINGS = ("mmap_threshold", "trim_threshold", "top_pad", "mmap_max")  # a user's own wins
-_freed_memory_kept: bool | None = None
-
-
-def _glibc() -> bool:
-    try:
-        return os.confstr("CS_GNU_LIBC_VERSION").startswith("glibc")
-    except (ValueError, OSError, AttributeError):  # not a glibc system
-        return False
-
-
-def keep_freed_memory() -> bool:
-    """Have glibc keep freed frame-sized blocks mapped for the next frame (once per process;
-    True where it took effect).
-
-    Every frame the network's activations, the descriptors' tables and the compositing
-    allocate and free tens of MB in blocks of 1-8 MB. With glibc's default, dynamic thresholds
-    such blocks are unmapped on free, or trimmed off the heap's top, and the next frame faults
-    the same pages in again, zeroed by the kernel (1000-2000 page faults a frame on the bench
-    video). With blocks under `MMAP_THRESHOLD_BYTES` taken from the heap and up to
-    `TRIM_THRESHOLD_BYTES` of free heap kept, ~300 remain. Results do not change (memory
-    management only); a process may keep up to 64 MB more per malloc arena. Nothing is done
-    where malloc is not glibc's or glibc's malloc is tuned through the environment.
-    """
-    global _freed_memory_kept
-    if _freed_memory_kept is None:
-        _freed_memory_kept = False
-        tunables = os.environ.get("GLIBC_TUNABLES", "")
-        tuned = any(os.environ.get(f"MALLOC_{k.upper()}_") or k in tunables for k in _SETTINGS)
-        if not tuned and _glibc():
-            mallopt = getattr(ctypes.CDLL(None), "mallopt", None)  # the process's own libc
-            if mallopt is not None:
-                _freed_memory_kept = bool(
-                    mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
-                    and mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
-                )
-    return _freed_memory_kept
-
-
 class FeatureExtractor:
     """Detector + descriptor as configured: `prepared frame -> Features`."""
 
     def __init__(self, config: FeaturesConfig, detector: Detector | None = None):
-        keep_freed_memory()  # a per-frame pipeline: see there
         self.config = config
         self.detector = detector if detector is not None else make_detector(config)
         if config.descriptor == "native" and self.detector.name in ("glampoints", "random-grid"):

@@ -2,7 +2,6 @@ import cv2
 import numpy as np
 import pytest
 
-import mosaic.features as features_module
 from mosaic.config import Config, FeaturesConfig, with_overrides
 from mosaic.errors import ConfigError
 from mosaic.features import (
@@ -248,12 +247,3 @@ def test_textured_equals_the_variance_of_the_blurred_float_image(shape):
     expected = var[iy, ix] >= MIN_LOCAL_CONTRAST**2
     assert 0 < expected.sum() < len(xy) or min(shape) < 100  # both sides of the threshold
     np.testing.assert_array_equal(_textured(gray, xy), expected)
-
-
-def test_keep_freed_memory_sets_glibc_malloc_once_unless_the_user_tuned_it(monkeypatch):
-    if not features_module._glibc():
-        pytest.skip("malloc is not glibc's here")
-    assert features_module.keep_freed_memory() is features_module.keep_freed_memory()
-    monkeypatch.setattr(features_module, "_freed_memory_kept", None)
-    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "131072")
-    assert features_module.keep_freed_memory() is False  # the user's own setting stays
