@@ -88,6 +88,8 @@ class RegistrationConfig:
     perspective_prior: float = 0.01  # with refine, relax a model below the homography into
     # one whose departure from it has this prior sd (frame half-diagonal = 1; 0.01 is ~2 px at
     # the corners): the matches set the perspective where they span the frame; 0 = pure model
+    track_window_px: int = 31  # video: re-localise each registration's inliers by pyramidal
+    # Lucas-Kanade in windows of this side on the band-passed frames, then refit (0: off)
     refine_levels: int = 3  # `mosaic register`: coarse-to-fine levels from the working size up to
     # the photographs' pixels (template matching around each inlier, robust refit; 0: off)
 
@@ -249,6 +251,7 @@ RANGES: dict[tuple[str, str], Range] = {
     ("registration", "min_inliers"): AT_LEAST_0,
     ("registration", "perspective_prior"): AT_LEAST_0,
     ("registration", "refine_levels"): Range(0, 6),
+    ("registration", "track_window_px"): Range(9, 61, off=True),
     ("compose", "max_canvas_px"): Range(64),
     ("compose", "feather_px"): AT_LEAST_0,
     ("compose", "quality_threshold"): FRACTION,

@@ -43,7 +43,7 @@ from mosaic.preprocess import (
     working_scale,
 )
 from mosaic.quality import frame_vs_canvas
-from mosaic.refine import fit_pair
+from mosaic.refine import fit_pair, lk_texture
 from mosaic.registration import MODELS, Registration, estimate_motion
 from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
@@ -234,6 +234,9 @@ class MosaicBuilder:
             return Extracted(record, image, prepared, skip=gate_reason, H_frame_to_work=S)
         detected = timer.run("detect", self.extractor.detect, prepared)
         features = timer.run("describe", self.extractor.describe, prepared, detected)
+        if self.config.registration.track_window_px > 0:
+            texture = timer.run("describe", lk_texture, prepared.gray)
+            features = dataclasses.replace(features, texture=texture)
         record.n_keypoints = len(features)
         return Extracted(record, image, prepared, features, H_frame_to_work=S)
 

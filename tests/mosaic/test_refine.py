@@ -59,3 +59,37 @@ def test_refinement_lowers_the_error_of_coarse_matches_against_the_truth(pair):
     e_after = np.linalg.norm(apply_quadratic(refined.fit.Q, xy) - truth, axis=1).mean()
     assert e_after < e_before / 3, (e_before, e_after)
     assert e_after < 0.5, (e_before, e_after)
+
+
+def test_tracking_places_points_on_a_blurred_noisy_view_better_than_their_prediction(fundus):
+    """Points predicted ~1.5 px off (what keypoints achieve on magnified video) are moved to
+    their true positions in a second view that is blurred, noisier, 20 % brighter and shifted
+    by a similarity: median error under half the prediction's (measured 1.23 -> 0.43 px)."""
+    from mosaic.refine import lk_texture, track_points
+    from tests.helpers import crop_pair, similarity
+
+    g = cv2.resize(fundus, None, fx=2.0, fy=2.0, interpolation=cv2.INTER_CUBIC)[..., 1]
+    H_b_to_a = similarity(1.5, 1.01, 7.3, -4.6, center=(200, 150))
+    a, b = crop_pair(g, H_b_to_a, (700, 500), (400, 300))
+    rng = np.random.default_rng(1)
+    b = cv2.GaussianBlur(b.astype(np.float32), (0, 0), 1.5) * 1.2 + rng.normal(0, 6, b.shape)
+    b = np.clip(b, 0, 255).astype(np.uint8)
+    corners = cv2.goodFeaturesToTrack(a, 150, 0.01, 8, mask=None).reshape(-1, 2)
+    corners = corners[(corners > 30).all(1) & (corners < [370, 270]).all(1)]
+    truth = apply_homography(np.linalg.inv(H_b_to_a), corners)  # a's points in b
+    pred = truth + rng.normal(0, 1.5 / np.sqrt(2), truth.shape)
+    found, ok = track_points(lk_texture(a), lk_texture(b), corners, pred, 31)
+    before = np.median(np.linalg.norm(pred - truth, axis=1))
+    after = np.median(np.linalg.norm(found[ok] - truth[ok], axis=1))
+    assert ok.mean() > 0.6
+    assert after < before / 2, (before, after)
+
+
+def test_tracking_leaves_out_points_it_cannot_place():
+    """A featureless view gives no trackable window; a prediction far off is not moved there."""
+    from mosaic.refine import lk_texture, track_points
+
+    flat = np.full((200, 200), 90, np.uint8)
+    xy = np.array([[100.0, 100.0], [50.0, 60.0]])
+    _, ok = track_points(lk_texture(flat), lk_texture(flat), xy, xy, 31)
+    assert not ok.any()
