@@ -235,7 +235,7 @@ class MosaicBuilder:
         detected = timer.run("detect", self.extractor.detect, prepared)
         features = timer.run("describe", self.extractor.describe, prepared, detected)
         if self.config.registration.track_window_px > 0:
-            texture = timer.run("describe", lk_texture, prepared.gray)
+            texture = timer.run("describe", lk_texture, prepared.gray, prepared.mask)
             features = dataclasses.replace(features, texture=texture)
         record.n_keypoints = len(features)
         return Extracted(record, image, prepared, features, H_frame_to_work=S)

@@ -45,14 +45,24 @@ TRACK_ITERATIONS = 30
 TRACK_EIGEN_QUANTILE = 0.2  # the weakest-textured windows (smallest LK eigenvalue) are out
 
 
-def lk_texture(gray: np.ndarray) -> np.ndarray:
+def lk_texture(gray: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """The frame's band-passed texture as uint8 (±3 sd around 128): illumination, vignetting
-    and gain changes removed, vessels kept, for `track_points`."""
+    and gain changes removed, vessels kept, for `track_points`. Outside `mask` (uint8, 0 = no
+    retina: the view's border, burned-in overlays) and as far inside it as the band-pass
+    reaches, flat 128: structure fixed to the camera must not pull the tracked points."""
     fine, coarse = TEXTURE_SIGMA_PX
     g = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), fine)
     hp = g - cv2.GaussianBlur(g, (0, 0), coarse)
-    s = 3.0 * float(hp.std()) + 1e-6
-    return np.clip(127.5 + 127.5 / s * hp, 0, 255).astype(np.uint8)
+    valid = None
+    if mask is not None and not mask.all():
+        reach = 2 * round(2 * coarse) + 1
+        valid = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (reach, reach)))
+        valid = valid > 0
+    s = 3.0 * float(hp[valid].std() if valid is not None and valid.any() else hp.std()) + 1e-6
+    texture = np.clip(127.5 + 127.5 / s * hp, 0, 255).astype(np.uint8)
+    if valid is not None:
+        texture[~valid] = 128
+    return texture
 
 
 def track_points(

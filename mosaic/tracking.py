@@ -93,16 +93,19 @@ class Tracker(Protocol):
 
 class PerspectiveEvidence:
     """Whether this video's views need the perspective terms between them: the median, over
-    its last WINDOW tracked registrations, of `registration.perspective_evidence`. Perspective
-    comes from the camera and the eye, so it is a property of the video; one registration's
-    test is weak (its points' errors are not independent), many agree. Measured on the
-    realistic tuning videos: a median of 1.3-1.7 without perspective, 3.7-6 with the mild tilt
-    of `mosaic synth --realistic` (frames 8-20 apart); relaxing without need costs precision
-    (corner error 0.24 -> 0.62 px), not relaxing with it costs 0.8 px."""
+    its last WINDOW tracked registrations of frames at least MIN_BASELINE apart, of
+    `registration.perspective_evidence`. Perspective comes from the camera and the eye, so it
+    is a property of the video; one registration's test is weak (its points' errors are not
+    independent), many agree; frames close together show too little of it to tell (evidence
+    1.3-1.6 between consecutive tilted frames). Measured on the realistic tuning videos: a
+    median of 1.3-1.7 without perspective, 3.7-6 with the mild tilt of `mosaic synth
+    --realistic` (frames 8-20 apart); relaxing without need costs precision (corner error 0.24
+    -> 0.62 px), not relaxing with it costs ~0.8 px."""
 
     WINDOW = 31
     THRESHOLD = 2.5
     MIN_VALUES = 5  # before this many, each registration's own test decides
+    MIN_BASELINE = 0.1  # only registrations whose frames are this far apart (of the diagonal) vote
 
     def __init__(self) -> None:
         self._values: deque[float] = deque(maxlen=self.WINDOW)
@@ -143,6 +146,7 @@ def _register(
     if (
         registration.ok
         and window > 0
+        and config.registration.refine
         and reference.texture is not None
         and features.texture is not None
     ):
@@ -188,7 +192,11 @@ def _tracked(
     refit = estimate_motion(xy_cur[ok], found[ok], config.registration, shape, model, False)
     if not refit.ok:
         return registration
-    perspective.add(refit.perspective_evidence)
+    h, w = shape
+    centre = np.array([[w / 2, h / 2]])
+    baseline = float(np.linalg.norm(project(refit.H_cur_to_prev, centre) - centre) / np.hypot(w, h))
+    if baseline >= perspective.MIN_BASELINE:
+        perspective.add(refit.perspective_evidence)
     if perspective.needed(refit.perspective_evidence, refit.model):
         refit = estimate_motion(xy_cur[ok], found[ok], config.registration, shape, model)
         if not refit.ok:

@@ -93,3 +93,20 @@ def test_tracking_leaves_out_points_it_cannot_place():
     xy = np.array([[100.0, 100.0], [50.0, 60.0]])
     _, ok = track_points(lk_texture(flat), lk_texture(flat), xy, xy, 31)
     assert not ok.any()
+
+
+def test_texture_is_flat_where_the_mask_has_no_retina_and_as_far_in_as_the_band_pass_reaches():
+    """A burned-in overlay or the view's border is fixed to the camera: its texture must not
+    pull the tracked points, so it is flat (128) there and up to 17 px inside the mask."""
+    from mosaic.refine import lk_texture
+
+    rng = np.random.default_rng(0)
+    gray = cv2.GaussianBlur(rng.uniform(0, 255, (200, 300)).astype(np.float32), (0, 0), 2)
+    gray = cv2.normalize(gray, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    mask = np.full(gray.shape, 255, np.uint8)
+    mask[80:120, 130:170] = 0  # the overlay
+    texture = lk_texture(gray, mask)
+    distance = cv2.distanceTransform(mask, cv2.DIST_L2, 5)  # to the overlay
+    assert (texture[distance <= 16] == 128).all()
+    assert texture[:40].std() > 20  # the retina keeps its texture
+    np.testing.assert_array_equal(lk_texture(gray, np.full_like(mask, 255)), lk_texture(gray))
