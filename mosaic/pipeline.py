@@ -538,7 +538,7 @@ def _tracking_summary(builder: MosaicBuilder) -> dict[str, Any]:
     per_segment = [s.tracker.stats() for s in builder._segments]
     totals: dict[str, Any] = {}
     counted = ("keyframes", "relocalised", "placed_by_previous", "loop_closures", "loop_attempts")
-    for key in (*counted, "extra_links"):
+    for key in (*counted, "extra_links", "tracked_registrations", "perspective_relaxed"):
         values = [stats[key] for stats in per_segment if key in stats]
         if values:
             totals[key] = int(sum(values))

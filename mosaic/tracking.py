@@ -109,6 +109,8 @@ class PerspectiveEvidence:
 
     def __init__(self) -> None:
         self._values: deque[float] = deque(maxlen=self.WINDOW)
+        self.tracked = 0  # registrations refitted on tracked points (for the report)
+        self.relaxed = 0  # of which relaxed by the perspective prior
 
     def add(self, value: float) -> None:
         if np.isfinite(value):
@@ -179,10 +181,9 @@ def _tracked(
     where the video's views need it (`PerspectiveEvidence`): on tracked points, which are
     placed twice as precisely, the relaxation would otherwise fit their errors."""
     assert registration.points is not None and registration.H_cur_to_prev is not None
-    xy_cur, xy_ref = registration.points
+    xy_cur = registration.points[0]
     if len(xy_cur) > TRACK_MAX_POINTS:  # evenly through the list: spread over the frame
-        pick = np.linspace(0, len(xy_cur) - 1, TRACK_MAX_POINTS).round().astype(int)
-        xy_cur, xy_ref = xy_cur[pick], xy_ref[pick]
+        xy_cur = xy_cur[np.linspace(0, len(xy_cur) - 1, TRACK_MAX_POINTS).round().astype(int)]
     pred = project(registration.H_cur_to_prev, xy_cur.astype(np.float64))
     found, ok = track_points(
         features.texture, reference.texture, xy_cur, pred, config.registration.track_window_px
@@ -201,6 +202,8 @@ def _tracked(
         refit = estimate_motion(xy_cur[ok], found[ok], config.registration, shape, model)
         if not refit.ok:
             return registration
+        perspective.relaxed += 1
+    perspective.tracked += 1
     return dataclasses.replace(
         registration,
         H_cur_to_prev=refit.H_cur_to_prev,
@@ -615,6 +618,8 @@ class KeyframeTracker:
             "loop_closures": c.loop_closures,
             "loop_attempts": c.loop_attempts,
             "extra_links": c.extra_links,
+            "tracked_registrations": self._perspective.tracked,
+            "perspective_relaxed": self._perspective.relaxed,
             "refinement": c.refinement or None,
         }
 

@@ -338,3 +338,24 @@ def test_perspective_is_decided_per_video_once_enough_registrations_agree():
     assert p.needed(1.0, "similarity")
     p.add(float("nan"))  # a fit without evidence adds nothing
     assert p.needed(1.0, "similarity")
+
+
+def test_tracked_inliers_lower_the_error_of_a_realistic_video_without_perspective(fundus):
+    """A realistic clip without perspective: tracked links, refitted as pure similarities (the
+    video shows no perspective, so they are seldom relaxed), place its frames closer to the
+    truth than keypoint links (measured 0.53 against 1.08 px mean; 1 of 85 tracked
+    registrations relaxed); the report counts them."""
+    params = SynthParams.realistic(n_frames=40, seed=5, perspective=0.0)
+    frames, truth = (list(x) for x in zip(*render_frames(fundus, params), strict=True))
+    errors = {}
+    for window in (31, 0):
+        config = with_overrides(Config(), registration={"track_window_px": window})
+        result = _run(config, frames)
+        e = errors_to_first(result.report["frames"], truth, params.size)
+        assert np.isfinite(e).mean() > 0.95
+        errors[window] = e[np.isfinite(e)].mean()
+        if window:
+            tracking = result.report["summary"]["tracking"]
+    assert tracking["tracked_registrations"] >= 60
+    assert tracking["perspective_relaxed"] < 0.3 * tracking["tracked_registrations"], tracking
+    assert errors[31] < 0.85 * errors[0], errors
