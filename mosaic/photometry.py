@@ -3,20 +3,22 @@ no retina, the vignetting (flat-field) profile, per-frame exposure gains and a p
 quality (local sharpness, glare, distance to the border) that decides which frame shows a
 place of the mosaic.
 
-Everything here is streamed: the estimators keep running sums (column / row profiles,
-thumbnails' sums, one previous frame) or a few numbers per frame (the overlap cells of the
-exposure solve), never the frames.
+Everything here is streamed: the estimators keep running sums (column / row profiles, the
+flat-field's normal equations, one previous frame) or a few numbers per frame (the overlap
+cells of the exposure solve), never the frames.
 
 - `SideBandDetector`: frame-fixed strips along the frame's sides (the adaptive-optics clip's
   striped bands, letterbox bars) show as a step, at the same column (row) in every part of the
   frame, in the time-averaged column (row) profiles of intensity, vertical and horizontal
   gradient energy and frame-to-frame change; moving retina averages to smooth profiles.
-- `FlatFieldEstimator`: the mean of the frames' thumbnails (each normalised by its own median)
-  in frame coordinates, where the moving retina averages out and the vignetting stays, fitted
-  by a robust quadratic surface (a radial fall-off about any centre is one).
-- `solve_gains`: per-frame gains (per channel) from the mean values of coarse mosaic cells that
-  several frames cover: least squares in log space, log(value) = log(gain) + log(radiance),
-  with a weak prior gain = 1 and Huber re-weighting (glare, misregistration).
+- `FlatFieldEstimator`: each frame against the mosaic of earlier frames under it, in log
+  space: the retina cancels and the shading's coefficients (a low-order surface in frame
+  coordinates, `shading_terms`) are a linear least-squares solution, accumulated frame by
+  frame (see the class).
+- `GainObservations.solve`: one gain per frame (all channels) from the mean values of coarse
+  mosaic cells that several frames cover: least squares in log space, log(value) =
+  log(exposure) + log(radiance), with a weak prior exposure = 1 and re-weighting against
+  glare and misregistration; `robust_gain` is the live canvas's running estimate.
 - `frame_quality`: contrast-normalised Laplacian energy x glare factor x border ramp, at low
   resolution; a frame's weight is its quality relative to the best frame at the same place.
 """
