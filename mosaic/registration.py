@@ -23,6 +23,7 @@ same way, and those biases add up along the video.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -398,13 +399,14 @@ def estimate_motion(
     config: RegistrationConfig,
     shape: tuple[int, int],
     model: str | None = None,
-    relax: bool = True,
+    relax: bool | Callable[[float, np.ndarray, str], bool] = True,
 ) -> Registration:
     """Motion mapping matched points of the current frame (of `shape` (h, w)) onto the
     reference: RANSAC consensus, the model (`model`, else `[registration] model`; "auto"
     selects), refined on all matches within the threshold; the paper's failure rules. With
-    `perspective_prior` the model is relaxed into a MAP homography, unless `relax` is False:
-    then the pure model and its `perspective_evidence`."""
+    `perspective_prior` the model is relaxed into a MAP homography when `relax` is True; when
+    False, the pure model and its `perspective_evidence`; when a function, it decides from that
+    evidence, the pure model's H_cur_to_prev and the model's name."""
     model = model or config.model
     if model == "quadratic":  # a 2x6 quadratic is for pairs (`refine.refine_pair`): its homography
         model = "homography"
@@ -451,11 +453,12 @@ def estimate_motion(
         dof = max(2 * len(a) - N_PARAMS[chosen], 1)
         inflation = _inflation(a, T)
         if config.perspective_prior > 0 and chosen != "homography":
-            sigma2 = max(fit.rss / dof, 1e-12) * inflation
-            if relax:
-                fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
-            else:
+            if relax is not True:
                 evidence = perspective_evidence(fit, a, b, w)
+            pure = np.linalg.inv(T) @ fit.M @ T
+            if relax is True or (callable(relax) and relax(evidence, pure / pure[2, 2], chosen)):
+                sigma2 = max(fit.rss / dof, 1e-12) * inflation
+                fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
         if model != "auto":  # the fit's expected corner error (auto's also counts the bias)
             sigma2 = max(fit.rss / dof, 1e-12) * inflation
             corner_sd = float(np.sqrt(np.mean(sigma2 * fit.predict(corners)[1])))

@@ -190,19 +190,22 @@ def _tracked(
     )
     if ok.sum() < config.registration.min_inliers:
         return registration
-    refit = estimate_motion(xy_cur[ok], found[ok], config.registration, shape, model, False)
-    if not refit.ok:
-        return registration
     h, w = shape
     centre = np.array([[w / 2, h / 2]])
-    baseline = float(np.linalg.norm(project(refit.H_cur_to_prev, centre) - centre) / np.hypot(w, h))
-    if baseline >= perspective.MIN_BASELINE:
-        perspective.add(refit.perspective_evidence)
-    if perspective.needed(refit.perspective_evidence, refit.model):
-        refit = estimate_motion(xy_cur[ok], found[ok], config.registration, shape, model)
-        if not refit.ok:
-            return registration
-        perspective.relaxed += 1
+    relaxed = False
+
+    def relax(evidence: float, H_pure: np.ndarray, fitted: str) -> bool:
+        nonlocal relaxed
+        baseline = float(np.linalg.norm(project(H_pure, centre) - centre) / np.hypot(w, h))
+        if baseline >= perspective.MIN_BASELINE:
+            perspective.add(evidence)
+        relaxed = perspective.needed(evidence, fitted)
+        return relaxed
+
+    refit = estimate_motion(xy_cur[ok], found[ok], config.registration, shape, model, relax)
+    if not refit.ok:
+        return registration
+    perspective.relaxed += relaxed
     perspective.tracked += 1
     return dataclasses.replace(
         registration,
