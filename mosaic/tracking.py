@@ -5,7 +5,8 @@
 - `KeyframeTracker`: each frame registers to the keyframe it overlaps most and to its
   predecessor; a frame becomes a keyframe when its registration to the current one decays
   (inliers, coverage) or their overlap drops, before registration fails. A frame that fails
-  every keyframe but matches its predecessor keeps its place; one that fails both is
+  every keyframe but matches its predecessor keeps its place (so does one whose keyframe
+  registration the predecessor's, with as many inliers, contradicts); one that fails both is
   relocalised against nearby and, while lost, all keyframes; new keyframes are matched against
   older overlapping ones (loop closure); at the end a pose graph over every placed frame is
   refined. Keyframes keep their features (bounded count), never their pixels.
@@ -405,6 +406,14 @@ class KeyframeTracker:
                 break
         attempts = len(candidates) + (previous is not None and not prev_is_keyframe)
         extra = dict(attempts=attempts, previous=previous, previous_matches=previous_matches)
+        if best is not None and self._contradicted(best, previous, shape):
+            log.info(
+                "frame %d: keyframe %d's registration contradicts the predecessor's; "
+                "placed by the predecessor",
+                index,
+                best.keyframe,
+            )
+            best = None
         if best is not None:
             self._lost = False
             assert best.keyframe is not None
@@ -433,6 +442,25 @@ class KeyframeTracker:
         self._lost = True
         assert first is not None
         return dataclasses.replace(first, **extra)
+
+    def _contradicted(
+        self, best: Track, previous: Registration | None, shape: tuple[int, int]
+    ) -> bool:
+        """Does the frame's registration to its predecessor, with at least as many inliers,
+        place it elsewhere than the chosen keyframe's (LINK_AGREEMENT_PX at the corners)? A
+        wrong registration that passes the failure rules (a few dozen inliers on a repetitive
+        or featureless view) would otherwise place the frame and outvote the right link in the
+        pose graph."""
+        if previous is None or not previous.ok or self._prev is None or best.keyframe is None:
+            return False
+        if self._keyframes[best.keyframe].frame_index == self._prev[0]:
+            return False
+        assert best.registration is not None and previous.H_cur_to_prev is not None
+        if previous.n_inliers < best.registration.n_inliers:
+            return False
+        by_previous = project(self._poses[self._prev[0]] @ previous.H_cur_to_prev, corners(shape))
+        placed = project(best.H_frame_to_ref, corners(shape))
+        return bool(np.linalg.norm(by_previous - placed, axis=1).mean() > self.LINK_AGREEMENT_PX)
 
     def _links(
         self, best: Track, tried: dict[int, Registration], shape: tuple[int, int]

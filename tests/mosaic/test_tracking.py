@@ -283,6 +283,34 @@ def test_an_extra_link_that_places_the_frame_elsewhere_is_not_kept():
     assert [index for index, _ in links] == [10]
 
 
+def test_a_keyframe_registration_the_predecessor_contradicts_does_not_place_the_frame():
+    """A wrong keyframe registration that passes the failure rules (a few dozen inliers on a
+    featureless view) is overruled when the frame's registration to its predecessor, with at
+    least as many inliers, places it elsewhere (on a realistic tuning video such a
+    registration, 50 px off with 22 inliers, had placed a frame and bent the rest of the
+    mosaic: 0.25 of its frames within 10 px, 1.00 after)."""
+
+    def shift(dx: float, dy: float) -> np.ndarray:
+        return np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])
+
+    def registration(H: np.ndarray, inliers: int) -> Registration:
+        return Registration(H, inliers, inliers, np.ones(inliers, bool), 0.5, None, "similarity")
+
+    tracker = KeyframeTracker(Config())
+    shape = (SIZE[1], SIZE[0])
+    tracker._keyframes[0] = Keyframe(0, 0, None, shape, shift(0.0, 0.0))
+    tracker._prev = (9, None)  # type: ignore[assignment]
+    tracker._poses[9] = shift(90.0, 0.0)  # the predecessor, placed at x = 90 on the map
+    wrong = Track(shift(140.0, 0.0), registration(shift(140.0, 0.0), 22), keyframe=0)
+    right = Track(shift(100.0, 0.0), registration(shift(100.0, 0.0), 22), keyframe=0)
+    by_previous = registration(shift(10.0, 0.0), 28)  # frame 10 at x = 100
+    assert tracker._contradicted(wrong, by_previous, shape)
+    assert not tracker._contradicted(right, by_previous, shape)
+    weaker = registration(shift(10.0, 0.0), 21)  # fewer inliers than the keyframe's: no veto
+    assert not tracker._contradicted(wrong, weaker, shape)
+    assert not tracker._contradicted(wrong, None, shape)
+
+
 def test_tracked_inliers_register_blurred_realistic_pairs_more_precisely(fundus):
     """Re-localising a registration's inliers by tracking (`[registration] track_window_px`)
     and refitting places realistic frame pairs (magnified, noisy, compressed-looking, with
