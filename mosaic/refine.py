@@ -52,17 +52,19 @@ def lk_texture(gray: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     reaches, flat 128: structure fixed to the camera must not pull the tracked points."""
     fine, coarse = TEXTURE_SIGMA_PX
     g = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), fine)
-    hp = g - cv2.GaussianBlur(g, (0, 0), coarse)
+    hp = cv2.subtract(g, cv2.GaussianBlur(g, (0, 0), coarse))
     valid = None
     if mask is not None and not mask.all():
         reach = 2 * round(2 * coarse) + 1
         valid = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (reach, reach)))
-        valid = valid > 0
-    s = 3.0 * float(hp[valid].std() if valid is not None and valid.any() else hp.std()) + 1e-6
-    texture = np.clip(127.5 + 127.5 / s * hp, 0, 255).astype(np.uint8)
-    if valid is not None:
-        texture[~valid] = 128
-    return texture
+    _, sd = cv2.meanStdDev(hp, mask=valid if valid is not None and valid.any() else None)
+    gain = 127.5 / (3.0 * float(sd[0, 0]) + 1e-6)
+    texture = cv2.addWeighted(hp, gain, hp, 0.0, 127.0, dtype=cv2.CV_8U)  # saturating
+    if valid is None:
+        return texture
+    flat = np.full_like(texture, 128)
+    cv2.copyTo(texture, valid, flat)
+    return flat
 
 
 def track_points(
