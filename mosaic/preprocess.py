@@ -43,14 +43,29 @@ def to_gray(image: np.ndarray, green_channel: bool) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
 
 
+DARK_VIEW_FRACTION = 0.25  # the border is at most this fraction of the view's bright level
+DARK_VIEW_FLOOR = 3.0  # grey level: nothing is told from the black border below this
+
+
+def _dark_view_threshold(small: np.ndarray) -> float:
+    """A border threshold for an under-exposed view (a dark photograph, low gain: the retina
+    itself a few grey levels above the black border, its vessels still visible): a quarter of
+    the frame's bright level (its 99th percentile), never under DARK_VIEW_FLOOR."""
+    counts = cv2.calcHist([small], [0], None, [256], [0, 256]).ravel().cumsum()
+    bright = float(np.searchsorted(counts, 0.99 * counts[-1]))
+    return max(DARK_VIEW_FLOOR, DARK_VIEW_FRACTION * bright)
+
+
 def field_of_view_mask(gray: np.ndarray, threshold: int, erode_px: int) -> np.ndarray:
     """Pixels inside the illuminated field of view: the bright region connected to the image.
 
-    A dark border (below `threshold` after light smoothing) is excluded, and the mask is eroded by
+    A dark border (below `threshold` after light smoothing, or below a quarter of the frame's
+    bright level in an under-exposed view) is excluded, and the mask is eroded by
     `erode_px` so detectors do not fire on the edge of the aperture itself. Dark structures inside
     the view (vessels, haemorrhages) stay inside because holes are filled.
     """
     small = cv2.GaussianBlur(gray, (0, 0), 2.0)
+    threshold = min(threshold, _dark_view_threshold(small))
     _, mask = cv2.threshold(small, threshold, 255, cv2.THRESH_BINARY)  # small > threshold
     if not mask.any():
         return np.full_like(gray, 255)

@@ -31,6 +31,27 @@ def test_fov_mask_is_the_disc_minus_the_erosion_margin():
     assert mask[100, 150] == 255  # on the dark vessel
 
 
+def test_fov_mask_of_an_under_exposed_view_is_the_view_not_its_vessels():
+    """A dark view (a dark photograph at low gain: the retina at grey ~5, its vessels at ~14,
+    the black border at ~2, sensor noise) is below the usual border threshold; its mask is
+    still the view (its frames were skipped for "too little field of view" although their
+    vessels were visible). A blank frame's mask stays as before."""
+    rng = np.random.default_rng(1)
+    h, w = 200, 300
+    frame = np.full((h, w), 2.0, np.float32)
+    cv2.circle(frame, (w // 2, h // 2), 80, 5.0, -1)
+    for y in (70, 100, 130):  # bright vessels inside the view
+        cv2.line(frame, (w // 2 - 60, y), (w // 2 + 60, y + 10), 14.0, 3)
+    noisy = np.clip(frame + rng.normal(0, 2.0, frame.shape), 0, 255).astype(np.uint8)
+    yy, xx = np.mgrid[:h, :w]
+    r = np.hypot(xx - w / 2, yy - h / 2)
+    mask = field_of_view_mask(noisy, threshold=12, erode_px=6) > 0
+    assert mask[r < 60].mean() > 0.95  # the view, not only its vessels
+    assert mask[r > 90].mean() < 0.02  # the border stays out
+    blank = np.clip(2.0 + rng.normal(0, 2.0, (h, w)), 0, 255).astype(np.uint8)
+    assert field_of_view_mask(blank, threshold=12, erode_px=6).all()  # no view: all, as before
+
+
 def test_prepare_uses_green_channel_and_enhances():
     frame = _disc_frame()
     config = PreprocessConfig(clahe=False, bilateral=False)
