@@ -455,8 +455,10 @@ def estimate_motion(
         if config.perspective_prior > 0 and chosen != "homography":
             if relax is not True:
                 evidence = perspective_evidence(fit, a, b, w)
-            pure = np.linalg.inv(T) @ fit.M @ T
-            if relax is True or (callable(relax) and relax(evidence, pure / pure[2, 2], chosen)):
+            if callable(relax):  # the pure model's H in pixels for the caller to judge
+                pure = np.linalg.inv(T) @ fit.M @ T
+                relax = relax(evidence, pure / pure[2, 2], chosen)
+            if relax:
                 sigma2 = max(fit.rss / dof, 1e-12) * inflation
                 fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
         if model != "auto":  # the fit's expected corner error (auto's also counts the bias)

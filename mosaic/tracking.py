@@ -458,9 +458,14 @@ class KeyframeTracker:
         assert best.registration is not None and previous.H_cur_to_prev is not None
         if previous.n_inliers < best.registration.n_inliers:
             return False
-        by_previous = project(self._poses[self._prev[0]] @ previous.H_cur_to_prev, corners(shape))
-        placed = project(best.H_frame_to_ref, corners(shape))
-        return bool(np.linalg.norm(by_previous - placed, axis=1).mean() > self.LINK_AGREEMENT_PX)
+        by_previous = self._poses[self._prev[0]] @ previous.H_cur_to_prev
+        return not self._agree(by_previous, best.H_frame_to_ref, shape)
+
+    def _agree(self, H_a: np.ndarray, H_b: np.ndarray, shape: tuple[int, int]) -> bool:
+        """Do two placements of a frame lie within LINK_AGREEMENT_PX (mean over its corners)?"""
+        frame = corners(shape)
+        gap = np.linalg.norm(project(H_a, frame) - project(H_b, frame), axis=1).mean()
+        return bool(gap <= self.LINK_AGREEMENT_PX)
 
     def _links(
         self, best: Track, tried: dict[int, Registration], shape: tuple[int, int]
@@ -470,15 +475,13 @@ class KeyframeTracker:
         enough inliers would otherwise pull the whole graph); the previous frame's registration
         is a link of its own."""
         assert best.H_frame_to_ref is not None
-        placed = project(best.H_frame_to_ref, corners(shape))
         links = []
         for k, registration in tried.items():
             kf = self._keyframes[k]
             if k == best.keyframe or not registration.ok or kf.frame_index == self._prev_index:
                 continue
             assert registration.H_cur_to_prev is not None
-            there = project(kf.H_to_ref @ registration.H_cur_to_prev, corners(shape))
-            if np.linalg.norm(there - placed, axis=1).mean() <= self.LINK_AGREEMENT_PX:
+            if self._agree(kf.H_to_ref @ registration.H_cur_to_prev, best.H_frame_to_ref, shape):
                 links.append((kf.frame_index, registration))
         return tuple(links)
 
