@@ -61,6 +61,8 @@ class FeaturesConfig:
     device: str = "cpu"  # where GLAMpoints runs its network: cpu | cuda (a CUDA GPU if present)
     extra_scale: float = 0.0  # GLAMpoints: also detect on the frame resized by this (0: off)
     precision: str = "auto"  # GLAMpoints network on CPU: float32 | bfloat16 | auto
+    border_margin_px: float = 8.0  # keypoints this far inside the view's mask and the frame's
+    # edge: a descriptor that sees the border (fixed to the camera) matches the camera's place
 
 
 @dataclass(frozen=True)
@@ -243,6 +245,7 @@ RANGES: dict[tuple[str, str], Range] = {
     ("features", "descriptor_size_px"): ABOVE_0,
     ("features", "detect_scale"): Range(0.1, 1),
     ("features", "extra_scale"): Range(0.1, 1, off=True),
+    ("features", "border_margin_px"): Range(0, 100),
     ("matching", "ratio"): Range(0, 1, low_open=True),
     ("registration", "reproj_threshold_px"): ABOVE_0,
     ("registration", "max_iters"): AT_LEAST_1,

@@ -247,3 +247,43 @@ def test_textured_equals_the_variance_of_the_blurred_float_image(shape):
     expected = var[iy, ix] >= MIN_LOCAL_CONTRAST**2
     assert 0 < expected.sum() < len(xy) or min(shape) < 100  # both sides of the threshold
     np.testing.assert_array_equal(_textured(gray, xy), expected)
+
+
+def test_keypoints_keep_off_the_view_border_that_is_fixed_to_the_camera(fundus):
+    """A faint, blurred view of the retina moved 11 px under a fixed aperture: the only
+    structure that matches is the aperture's border, which has not moved. Keypoints up to the
+    border (margin 0) make a registration that passes the failure rules 10 px off (measured
+    35 inliers); with the default margin no keypoint lies within 8 px of the mask's edge, the
+    still matches are a third as many and the registration fails instead of misplacing."""
+    from mosaic.matching import match_descriptors
+    from mosaic.registration import estimate_motion
+
+    big = cv2.resize(fundus, None, fx=2.0, fy=2.0, interpolation=cv2.INTER_CUBIC)
+    a, b = crop_pair(big, similarity(0.0, 1.0, 11.0, -5.0), origin=(900, 1100), size=(660, 350))
+    aperture = np.zeros(a.shape[:2], np.uint8)
+    cv2.ellipse(aperture, (330, 175), (320, 170), 0, 0, 360, 255, -1)
+    config = Config()
+    views = []
+    for seed, image in enumerate((a, b)):
+        g = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 4.5) * 0.3
+        g += np.random.default_rng(seed).normal(0, 4, g.shape)
+        g[aperture == 0] = 4
+        views.append(prepare(np.clip(g, 0, 255).astype(np.uint8), config.preprocess))
+    results = {}
+    for margin in (0.0, config.features.border_margin_px):
+        extractor = FeatureExtractor(
+            with_overrides(config, features={"border_margin_px": margin}).features
+        )
+        fa, fb = extractor(views[0]), extractor(views[1])
+        m = match_descriptors(fa.descriptors, fb.descriptors, config.matching)
+        still = int((np.linalg.norm(fa.xy[m.idx_a] - fb.xy[m.idx_b], axis=1) < 2).sum())
+        reg = estimate_motion(fb.xy[m.idx_b], fa.xy[m.idx_a], config.registration, (350, 660))
+        results[margin] = (fa, still, reg)
+    _, still_0, reg_0 = results[0.0]
+    assert reg_0.ok and np.abs(reg_0.H_cur_to_prev[:2, 2] - [11.0, -5.0]).max() > 5.0
+    fa, still, reg = results[config.features.border_margin_px]
+    assert still <= still_0 / 2, (still, still_0)
+    assert not reg.ok or np.abs(reg.H_cur_to_prev[:2, 2] - [11.0, -5.0]).max() < 2.0
+    inside = cv2.distanceTransform(np.pad(views[0].mask, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    xi, yi = np.round(fa.xy).astype(int).T
+    assert inside[yi, xi].min() >= config.features.border_margin_px - 1  # a pixel's rounding
