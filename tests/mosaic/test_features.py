@@ -254,7 +254,8 @@ def test_keypoints_keep_off_the_view_border_that_is_fixed_to_the_camera(fundus):
     structure that matches is the aperture's border, which has not moved. Keypoints up to the
     border (margin 0) make a registration that passes the failure rules 10 px off (measured
     35 inliers); with the default margin no keypoint lies within 8 px of the mask's edge, the
-    still matches are a third as many and the registration fails instead of misplacing."""
+    still matches are a third as many and the registration fails instead of misplacing. The
+    points are dropped after detection: those left are the margin-0 points, not weaker ones."""
     from mosaic.matching import match_descriptors
     from mosaic.registration import estimate_motion
 
@@ -287,3 +288,7 @@ def test_keypoints_keep_off_the_view_border_that_is_fixed_to_the_camera(fundus):
     inside = cv2.distanceTransform(np.pad(views[0].mask, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
     xi, yi = np.round(fa.xy).astype(int).T
     assert inside[yi, xi].min() >= config.features.border_margin_px - 1  # a pixel's rounding
+    # dropped after detection: the same strongest points, not weaker ones filling the budget
+    fa_0 = results[0.0][0]
+    kept = (np.abs(fa.xy[:, None] - fa_0.xy[None]).max(axis=2) == 0).any(axis=1)
+    assert kept.all() and len(fa) < len(fa_0)
