@@ -19,7 +19,7 @@ from glampoints.descriptors import upright_rootsift
 from glampoints.detector import Keypoints
 from mosaic.config import FeaturesConfig
 from mosaic.errors import ConfigError
-from mosaic.preprocess import Prepared
+from mosaic.preprocess import Prepared, erode_by_disc
 
 log = logging.getLogger(__name__)
 
@@ -319,8 +319,7 @@ class FeatureExtractor:
         margin = round(self.config.border_margin_px)
         if margin <= 0 or len(detected) == 0:
             return detected
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
-        allowed = cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        allowed = erode_by_disc(mask, margin, edge_counts=True)
         h, w = mask.shape
         col = np.round(detected.xy[:, 0]).astype(np.intp).clip(0, w - 1)
         row = np.round(detected.xy[:, 1]).astype(np.intp).clip(0, h - 1)

@@ -36,6 +36,7 @@ from scipy.optimize import least_squares
 from mosaic.compose import Canvas
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
+from mosaic.preprocess import erode_by_disc
 from mosaic.registration import apply_homography as transform
 
 log = logging.getLogger(__name__)
@@ -94,10 +95,7 @@ def prepare_source(image: np.ndarray) -> SourceTruth:
     outside[edge] = True
     outside[0] = True  # label 0: the bright region itself
     fov = np.where(outside[labels] & (fov == 0), 0, 255).astype(np.uint8)
-    if SOURCE_FOV_ERODE_PX > 0:
-        size = 2 * SOURCE_FOV_ERODE_PX + 1
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-        fov = cv2.erode(fov, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    fov = erode_by_disc(fov, SOURCE_FOV_ERODE_PX, edge_counts=True)
     return SourceTruth(green=green_channel(image), fov=fov)
 
 

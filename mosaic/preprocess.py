@@ -56,6 +56,18 @@ def _dark_view_threshold(small: np.ndarray) -> float:
     return max(DARK_VIEW_FLOOR, DARK_VIEW_FRACTION * bright)
 
 
+def erode_by_disc(mask: np.ndarray, radius_px: int, edge_counts: bool = False) -> np.ndarray:
+    """`mask` (uint8) shrunk by a disc of `radius_px`: what lies at least that far inside it.
+    With `edge_counts`, the image's edge is outside too (for what is fixed to the camera, such
+    as a descriptor cut by the frame's edge); else the mask continues beyond the edge."""
+    if radius_px <= 0:
+        return mask
+    size = 2 * radius_px + 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    border = 0 if edge_counts else 255
+    return cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=border)
+
+
 def field_of_view_mask(gray: np.ndarray, threshold: int, erode_px: int) -> np.ndarray:
     """Pixels inside the illuminated field of view: the bright region connected to the image.
 
@@ -77,10 +89,7 @@ def field_of_view_mask(gray: np.ndarray, threshold: int, erode_px: int) -> np.nd
     touches_border[0] = True  # label 0 is the bright region itself
     if not touches_border.all():  # most frames have no hole: no pass over the labels
         mask[~touches_border[labels]] = 255
-    if erode_px > 0:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
-        mask = cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=255)
-    return mask
+    return erode_by_disc(mask, erode_px)
 
 
 FOV_DISC_THRESHOLD = 15  # grey level separating a fundus image's black border from the retina

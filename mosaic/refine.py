@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from mosaic.config import RegistrationConfig
+from mosaic.preprocess import erode_by_disc
 from mosaic.registration import RobustFit, apply_homography, apply_quadratic, robust_fit
 
 log = logging.getLogger(__name__)
@@ -67,8 +68,7 @@ def lk_texture(gray: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     hp = cv2.subtract(g, _smooth(g, coarse))
     valid = None
     if mask is not None and not mask.all():
-        reach = 2 * round(2 * coarse) + 1
-        valid = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (reach, reach)))
+        valid = erode_by_disc(mask, round(2 * coarse))
     _, sd = cv2.meanStdDev(hp, mask=valid if valid is not None and valid.any() else None)
     gain = 127.5 / (3.0 * float(sd[0, 0]) + 1e-6)
     texture = cv2.addWeighted(hp, gain, hp, 0.0, 127.0, dtype=cv2.CV_8U)  # saturating

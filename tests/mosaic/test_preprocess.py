@@ -1,10 +1,12 @@
 import cv2
 import numpy as np
+import pytest
 
 from glampoints.synthetic import frame_preprocess
 from mosaic.config import PreprocessConfig
 from mosaic.preprocess import (
     OverlayMask,
+    erode_by_disc,
     field_of_view_mask,
     prepare,
     retina_disc,
@@ -198,3 +200,22 @@ def test_working_size_brings_the_retina_to_the_trained_diameter_and_else_falls_b
     frame = cv2.GaussianBlur(rng.uniform(60, 200, (700, 1320)).astype(np.uint8), (0, 0), 3)
     assert working_scale(frame, 800, 480) == 800 / 1320  # no disc: max_side_px
     assert working_scale(_fundus(400, 400, 200.0, 200.0, 190.0), 800, 480) == 1.0  # never up
+
+
+@pytest.mark.parametrize("radius", [1, 6, 8, 17])
+def test_erode_by_disc_keeps_what_lies_that_far_inside_the_mask(radius):
+    """The pixels kept are those at least `radius` (within a pixel's rounding) from the nearest
+    pixel outside the mask, by the exact Euclidean distance; with `edge_counts` the image's
+    edge is outside too, without it the mask goes on beyond the edge."""
+    h, w = 120, 160
+    mask = np.full((h, w), 255, np.uint8)
+    cv2.circle(mask, (40, 60), 25, 0, -1)
+    cv2.rectangle(mask, (100, 10), (150, 30), 0, -1)
+    for edge_counts in (False, True):
+        kept = erode_by_disc(mask, radius, edge_counts=edge_counts) > 0
+        padded = np.pad(mask, 1, constant_values=0 if edge_counts else 255)
+        distance = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+        assert (distance[kept] >= radius - 0.5).all()
+        assert kept[distance >= radius + 1.0].all()
+    assert (erode_by_disc(mask, 0) == mask).all()
+    assert erode_by_disc(np.full((h, w), 255, np.uint8), radius).all()
