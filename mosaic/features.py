@@ -277,6 +277,14 @@ def make_detector(config: FeaturesConfig) -> Detector:
     return factory(config)
 
 
+def _inside(mask: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Whether each point (N, 2) falls on a nonzero pixel of `mask` (nearest pixel, clipped)."""
+    h, w = mask.shape[:2]
+    col = np.round(xy[:, 0]).astype(np.intp).clip(0, w - 1)
+    row = np.round(xy[:, 1]).astype(np.intp).clip(0, h - 1)
+    return mask[row, col] > 0
+
+
 class FeatureExtractor:
     """Detector + descriptor as configured: `prepared frame -> Features`."""
 
@@ -320,10 +328,7 @@ class FeatureExtractor:
         if margin <= 0 or len(detected) == 0:
             return detected
         allowed = erode_by_disc(mask, margin, edge_counts=True)
-        h, w = mask.shape
-        col = np.round(detected.xy[:, 0]).astype(np.intp).clip(0, w - 1)
-        row = np.round(detected.xy[:, 1]).astype(np.intp).clip(0, h - 1)
-        keep = allowed[row, col] > 0
+        keep = _inside(allowed, detected.xy)
         return Features(
             detected.xy[keep],
             detected.scores[keep],
@@ -346,13 +351,7 @@ class FeatureExtractor:
         xy = to_frame_pixels(keypoints.xy, factor)
         h, w = prepared.gray.shape
         inside = (xy[:, 0] <= w - 1) & (xy[:, 1] <= h - 1) & (xy >= 0).all(axis=1)
-        inside &= (
-            prepared.mask[
-                np.round(xy[:, 1]).astype(int).clip(0, h - 1),
-                np.round(xy[:, 0]).astype(int).clip(0, w - 1),
-            ]
-            > 0
-        )
+        inside &= _inside(prepared.mask, xy)
         return Keypoints(xy[inside], keypoints.scores[inside]), sizes[inside] * factor[0]
 
     def describe(self, prepared: Prepared, detected: Features) -> Features:
