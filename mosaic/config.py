@@ -117,6 +117,8 @@ class PipelineConfig:
 
     strategy: str = "keyframes"  # keyframes (accurate over long videos) | chain (the paper's)
     on_failure: str = "skip"  # stop (paper's protocol) | skip | restart (new mosaic segment)
+    reanchor_after: int = 5  # skip: this many failures in a row against a mosaic of one frame
+    # start it again from two later frames that register to each other (0: never)
     step: int = 1  # process every step-th frame
     max_frames: int = 0  # stop after this many processed frames; 0: whole video
     overlap: bool = True  # extract frame i+1 in a background thread while frame i registers
@@ -259,6 +261,7 @@ RANGES: dict[tuple[str, str], Range] = {
     ("compose", "feather_px"): AT_LEAST_0,
     ("compose", "quality_threshold"): FRACTION,
     ("pipeline", "step"): AT_LEAST_1,
+    ("pipeline", "reanchor_after"): AT_LEAST_0,
     ("pipeline", "max_frames"): AT_LEAST_0,
     ("pipeline", "checkpoint_every_s"): AT_LEAST_0,
     ("keyframes", "min_overlap"): FRACTION,

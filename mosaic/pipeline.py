@@ -192,6 +192,10 @@ class MosaicBuilder:
         self._compositor = LiveCompositor(compose, self._photometry, correct=self._live_quality)
         self._gain_solution: str | None = "live" if self._live_quality else None
         self._started = time.perf_counter()
+        # failures in a row against a segment that holds only its first frame, and the last
+        # of them (re-anchoring: `_reanchor`)
+        self._stalled = 0
+        self._last_failed: Extracted | None = None
 
     @property
     def _segment(self) -> _Segment | None:
@@ -282,18 +286,14 @@ class MosaicBuilder:
         timer = _Timer(record)
         segment = self._segment or self._new_segment()
         track = segment.tracker.track(record.index, features, prepared.gray.shape, timer)
-        if track.registration is not None:
-            record.n_matches = track.registration.n_matches
-            record.n_inliers = track.registration.n_inliers
-            record.reproj_error_px = track.registration.reproj_error_px
-            record.model = track.registration.model
-            record.coverage = track.registration.coverage
-            record.reference = track.reference_index
+        _note_registration(record, track)
         reason = track.reason
         if reason is None:
             reason = self._place(segment, record, image, prepared, features, track, timer)
         if reason is not None:
             self._fail(record, image, prepared, features, timer, reason)
+            if self.config.pipeline.on_failure == "skip":
+                track = self._reanchor(extracted, timer) or track
         self.viewer.frame(
             FrameEvent(
                 record,
@@ -372,6 +372,8 @@ class MosaicBuilder:
             return str(exc)
         segment.tracker.commit(record.index, features, prepared.gray.shape, track)
         record.status, record.H_frame_to_ref = REGISTERED, H_frame_to_ref
+        record.reason = None
+        self._stalled, self._last_failed = 0, None
         record.segment = segment.index
         self._set_quality(record, quality)
         segment.records.append(record)
@@ -401,6 +403,54 @@ class MosaicBuilder:
             if self._place(segment, record, image, prepared, features, first, timer) is None:
                 record.status = FAILED
                 record.reason = f"{reason}; started segment {segment.index}"
+
+    def _reanchor(self, failed: Extracted, timer: _Timer) -> Track | None:
+        """Start the mosaic again when no frame registers to its first one. A dark, featureless
+        or blurred first frame would otherwise leave every later frame failed (measured: a
+        magnified video that opens on a dark region, 1 of 120 frames placed). After
+        `[pipeline] reanchor_after` failures in a row against a segment that holds only its
+        first frame, the failed frame before this one becomes the segment's first frame if
+        this one registers to it; the old first frame is reported failed. Returns this
+        frame's new track (None: nothing changed)."""
+        after = self.config.pipeline.reanchor_after
+        segment = self._segment
+        if after <= 0 or segment is None or len(segment.records) != 1:
+            return None
+        self._stalled += 1
+        previous, self._last_failed = self._last_failed, failed
+        if self._stalled < after or previous is None:
+            return None
+        assert previous.features is not None and previous.prepared is not None
+        assert failed.features is not None and failed.prepared is not None
+        shape = failed.prepared.gray.shape
+        trial = make_tracker(self.config)
+        trial.commit(previous.record.index, previous.features, shape, Track(np.eye(3)))
+        if trial.track(failed.record.index, failed.features, shape, timer).reason is not None:
+            return None
+        dropped = segment.records[0]
+        fresh = _Segment(segment.index, Canvas(self.config.compose), make_tracker(self.config))
+        self._segments[-1] = fresh
+        track = None
+        for frame in (previous, failed):
+            assert frame.image is not None and frame.prepared is not None
+            assert frame.features is not None
+            track = fresh.tracker.track(frame.record.index, frame.features, shape, timer)
+            _note_registration(frame.record, track)
+            reason = self._place(
+                fresh, frame.record, frame.image, frame.prepared, frame.features, track, timer
+            )
+            if reason is not None:
+                frame.record.reason = reason
+        dropped.status, dropped.segment, dropped.H_frame_to_ref = FAILED, None, None
+        dropped.reason = (
+            f"dropped as the mosaic's first frame: the next {after} frames did not register to it"
+        )
+        log.warning(
+            "frame %d dropped: no frame registered to it; the mosaic starts again at frame %d",
+            dropped.index,
+            previous.record.index,
+        )
+        return track
 
     def _refine(self, segment: _Segment) -> None:
         """Global refinement of the segment's poses (keyframe strategy)."""
@@ -495,6 +545,22 @@ def _longest_run(statuses: list[str]) -> int:
             run += 1
             best = max(best, run)
     return best
+
+
+def _note_registration(record: FrameRecord, track: Track) -> None:
+    """The record's registration figures from a track (none for a segment's first frame)."""
+    registration = track.registration
+    if registration is None:
+        record.n_matches = record.n_inliers = 0
+        record.reproj_error_px = record.coverage = float("nan")
+        record.model = record.reference = None
+        return
+    record.n_matches = registration.n_matches
+    record.n_inliers = registration.n_inliers
+    record.reproj_error_px = registration.reproj_error_px
+    record.model = registration.model
+    record.coverage = registration.coverage
+    record.reference = track.reference_index
 
 
 def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict[str, Any]:

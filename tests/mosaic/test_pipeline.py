@@ -97,6 +97,27 @@ def test_skip_policy_drops_a_bad_frame_and_goes_on(video):
     assert result.report["frames"][5]["H_to_canvas"] is None
 
 
+def test_a_first_frame_nothing_registers_to_is_dropped_and_the_mosaic_starts_again(video):
+    folder, gt = video
+    result = _run(folder, _config(on_failure="skip"), bad={0})  # opens on a blank frame
+    frames = result.report["frames"]
+    statuses = [f["status"] for f in frames]
+    # frames 1-5 fail against frame 0; frame 5 registers to frame 4, which becomes the first
+    assert statuses[:4] == ["failed"] * 4 and statuses[4:] == ["registered"] * 20
+    assert frames[0]["reason"].startswith("dropped as the mosaic's first frame")
+    assert frames[0]["H_to_canvas"] is None and frames[5]["reference"] == 4
+    assert result.report["summary"]["segments"] == 1 and result.main.n_frames == 20
+    errors = errors_to_first(frames[4:], gt, SIZE)[1:]
+    assert np.mean(errors) < 3.0 and np.max(errors) < 6.0, errors
+
+
+def test_without_reanchoring_a_blank_first_frame_fails_the_video(video):
+    folder, _ = video
+    result = _run(folder, _config(on_failure="skip", reanchor_after=0), bad={0})
+    statuses = [f["status"] for f in result.report["frames"]]
+    assert statuses == ["registered"] + ["failed"] * 23
+
+
 def test_stop_policy_ends_at_the_first_failure(video):
     folder, _ = video
     result = _run(folder, _config(on_failure="stop"), bad={7})
