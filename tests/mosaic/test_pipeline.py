@@ -99,7 +99,7 @@ def test_skip_policy_drops_a_bad_frame_and_goes_on(video):
 
 def test_a_first_frame_nothing_registers_to_is_dropped_and_the_mosaic_starts_again(video):
     folder, gt = video
-    result = _run(folder, _config(on_failure="skip"), bad={0})  # opens on a blank frame
+    result = _run(folder, _config(on_failure="skip"), bad={0})  # opens on a frame of noise
     frames = result.report["frames"]
     statuses = [f["status"] for f in frames]
     # frames 1-5 fail against frame 0; frame 5 registers to frame 4, which becomes the first
@@ -111,7 +111,7 @@ def test_a_first_frame_nothing_registers_to_is_dropped_and_the_mosaic_starts_aga
     assert np.mean(errors) < 3.0 and np.max(errors) < 6.0, errors
 
 
-def test_without_reanchoring_a_blank_first_frame_fails_the_video(video):
+def test_without_reanchoring_an_unregistrable_first_frame_fails_the_video(video):
     folder, _ = video
     result = _run(folder, _config(on_failure="skip", reanchor_after=0), bad={0})
     statuses = [f["status"] for f in result.report["frames"]]
