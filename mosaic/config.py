@@ -142,6 +142,9 @@ class KeyframesConfig:
     loop_closure: bool = True  # match new keyframes against older overlapping ones too
     loop_min_overlap: float = 0.3  # predicted overlap that makes an old keyframe a loop candidate
     refine: bool = True  # pose-graph refinement of the keyframes at the end of the video
+    tilt_step_px: float = 0.2  # pose graph: each view is a similarity times a tilt whose effect
+    # at the frame corner changes about this much per frame, fitted to the links' inlier points
+    # (0: free homographies fitted to each link's chosen model)
     rerender: bool = True  # re-read the video to render the mosaic from refined poses
 
 
@@ -273,6 +276,7 @@ RANGES: dict[tuple[str, str], Range] = {
     ("keyframes", "bridge_frames"): AT_LEAST_0,
     ("keyframes", "bridge_keyframes"): AT_LEAST_0,
     ("keyframes", "loop_min_overlap"): FRACTION,
+    ("keyframes", "tilt_step_px"): AT_LEAST_0,
     ("gating", "min_sharpness_ratio"): FRACTION,
     ("gating", "min_fov_fraction"): FRACTION,
 }

@@ -258,3 +258,230 @@ def refine_poses(
         _rms(after),
     )
     return Refinement(refined, rms_before, _rms(after), len(kept), dropped)
+
+
+# -- poses with a slowly varying tilt ------------------------------------------------------
+# A view of the retina is a similarity of the mosaic plane times a perspective in the frame's
+# own coordinates (the camera's tilt against the retina, which changes slowly along a video):
+# H_frame_to_plane = S P, P = [[1, 0, 0], [0, 1, 0], [p, q, 1]] in frame-centred coordinates
+# of unit half-diagonal. Between two views H = P_b^-1 S_b^-1 S_a P_a is not a similarity, and
+# a similarity fitted to each link is biased by the tilt in a way that adds up along the path;
+# homographies fitted per link are too noisy where the matches sit on one side. Here the tilt
+# is a per-frame state with a smoothness prior, fitted jointly with the similarities to all
+# links' inlier points, so each frame's tilt is set by many links at once.
+# per node: the similarity (a, b, tx, ty), S = [[1 + a, -b, tx], [b, 1 + a, ty]]; the tilt (p, q)
+TILT_PARAMS = 6
+FD_STEP = 1e-6  # finite-difference step of the Jacobian (normalised units)
+
+
+def _tilted_matrices(params: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) S P of each node from its six parameters."""
+    a, b, tx, ty, p, q = params.T
+    S = np.zeros((len(params), 3, 3))
+    S[:, 0, 0] = S[:, 1, 1] = 1 + a
+    S[:, 0, 1], S[:, 1, 0] = -b, b
+    S[:, 0, 2], S[:, 1, 2], S[:, 2, 2] = tx, ty, 1.0
+    P = np.tile(np.eye(3), (len(params), 1, 1))
+    P[:, 2, 0], P[:, 2, 1] = p, q
+    return S @ P
+
+
+def _tilted_point_residuals(
+    pa: np.ndarray, pb: np.ndarray, xy_a: np.ndarray, xy_b: np.ndarray
+) -> np.ndarray:
+    """(M, 2) transfer errors of points a → plane → b (P_b^-1 S_b^-1 S_a P_a), the nodes'
+    parameters given per point; written out element by element (a batched 3x3 product per
+    point is ten times slower)."""
+    x, y = xy_a[:, 0], xy_a[:, 1]
+    w = pa[:, 4] * x + pa[:, 5] * y + 1.0  # P_a
+    c, d = 1.0 + pa[:, 0], pa[:, 1]  # S_a
+    X, Y = c * x - d * y + pa[:, 2] * w, d * x + c * y + pa[:, 3] * w
+    c, d = 1.0 + pb[:, 0], pb[:, 1]  # S_b^-1, up to scale
+    X, Y = X - pb[:, 2] * w, Y - pb[:, 3] * w
+    X, Y, w = c * X + d * Y, c * Y - d * X, (c * c + d * d) * w
+    w = w - pb[:, 4] * X - pb[:, 5] * Y  # P_b^-1
+    return np.stack([X / w, Y / w], 1) - xy_b
+
+
+@dataclass(frozen=True)
+class _TiltedProblem:
+    a: np.ndarray  # (M,) node row of each point's frame
+    b: np.ndarray  # (M,) node row of its match's frame
+    xy_a: np.ndarray  # (M, 3) homogeneous, normalised
+    xy_b: np.ndarray  # (M, 2) normalised
+    scale: np.ndarray  # (M,) weight times the normalisation back to pixels
+    constraint: np.ndarray  # (M,) constraint of each point
+    prev: np.ndarray  # (K,) node rows of consecutive frames' pairs (tilt smoothness) ...
+    next: np.ndarray  # (K,) ... and their partners
+    smooth: np.ndarray  # (K,) weight of each pair's tilt difference (normalised units -> sd)
+    prior: float  # weight of each tilt's absolute value
+
+
+def _tilted_residuals(params: np.ndarray, pb: _TiltedProblem) -> np.ndarray:
+    r = _tilted_point_residuals(params[pb.a], params[pb.b], pb.xy_a, pb.xy_b)
+    smooth = (params[pb.next, 4:] - params[pb.prev, 4:]) * pb.smooth[:, None]
+    return np.concatenate(
+        [(r * pb.scale[:, None]).ravel(), smooth.ravel(), (params[:, 4:] * pb.prior).ravel()]
+    )
+
+
+def _tilted_jacobian(params: np.ndarray, pb: _TiltedProblem, column: np.ndarray) -> csr_matrix:
+    """Sparse Jacobian: each point's residual depends on its two nodes only (central
+    differences on those, all points at once); the priors are linear."""
+    m = len(pb.a)
+    pa, pbb = params[pb.a], params[pb.b]
+    rows, cols, vals = [], [], []
+    point_rows = np.arange(2 * m).reshape(m, 2)
+    for side, nodes in ((0, pb.a), (1, pb.b)):
+        for k in range(TILT_PARAMS):
+            col = column[nodes, k]
+            keep = col >= 0
+            if not keep.any():
+                continue
+            d = np.zeros_like(pa)
+            d[:, k] = FD_STEP
+            plus = (pa + d, pbb) if side == 0 else (pa, pbb + d)
+            minus = (pa - d, pbb) if side == 0 else (pa, pbb - d)
+            deriv = (
+                _tilted_point_residuals(*plus, pb.xy_a, pb.xy_b)
+                - _tilted_point_residuals(*minus, pb.xy_a, pb.xy_b)
+            ) / (2 * FD_STEP)
+            deriv *= pb.scale[:, None]
+            rows.append(point_rows[keep].ravel())
+            cols.append(np.repeat(col[keep], 2))
+            vals.append(deriv[keep].ravel())
+    base = 2 * m
+    for j in range(2):  # smoothness rows: (tilt_next - tilt_prev) * w
+        r = base + 2 * np.arange(len(pb.prev)) + j
+        for nodes, sign in ((pb.next, 1.0), (pb.prev, -1.0)):
+            col = column[nodes, 4 + j]
+            keep = col >= 0
+            rows.append(r[keep])
+            cols.append(col[keep])
+            vals.append(sign * pb.smooth[keep])
+    base += 2 * len(pb.prev)
+    n = len(params)
+    for j in range(2):
+        r = base + 2 * np.arange(n) + j
+        col = column[:, 4 + j]
+        keep = col >= 0
+        rows.append(r[keep])
+        cols.append(col[keep])
+        vals.append(np.full(int(keep.sum()), pb.prior))
+    n_rows = base + 2 * n
+    n_cols = int(column.max()) + 1
+    r, c, v = (np.concatenate(x) for x in (rows, cols, vals))
+    return coo_matrix((v, (r, c)), shape=(n_rows, n_cols)).tocsr()
+
+
+def _similarity_params(G: np.ndarray) -> np.ndarray:
+    """(a, b, tx, ty) of the similarity nearest a normalised homography (on a 3x3 grid)."""
+    g = np.stack(np.meshgrid(np.linspace(-0.7, 0.7, 3), np.linspace(-0.7, 0.7, 3)), -1)
+    src = g.reshape(-1, 2)
+    p = np.hstack([src, np.ones((len(src), 1))]) @ G.T
+    dst = p[:, :2] / p[:, 2:]
+    x, y = src.T
+    A = np.zeros((2 * len(src), 4))
+    A[0::2] = np.stack([x, -y, np.ones_like(x), np.zeros_like(x)], 1)
+    A[1::2] = np.stack([y, x, np.zeros_like(x), np.ones_like(x)], 1)
+    s, *_ = np.linalg.lstsq(A, dst.ravel(), rcond=None)
+    return np.array([s[0] - 1, s[1], s[2], s[3]])
+
+
+def refine_tilted_poses(
+    poses: dict[int, np.ndarray],
+    constraints: list[Constraint],
+    fixed: int,
+    shape: tuple[int, int],
+    tilt_step_px: float = 0.2,
+    tilt_prior_px: float = 30.0,
+    loss_scale_px: float = 2.0,
+    max_loop_rms_px: float = 5.0,
+) -> Refinement:
+    """Poses H_frame_to_ref = P_fixed^-1 S P (see above) consistent with the constraints; the
+    tilt's effect at the frame corner changes by about `tilt_step_px` per frame and stays
+    within about `tilt_prior_px`. `fixed` is the reference (identity)."""
+    constraints = [c for c in constraints if c.a in poses and c.b in poses and len(c.xy_a)]
+    if not constraints or len(poses) < 2:
+        return Refinement(dict(poses), 0.0, 0.0, len(constraints))
+    nodes = sorted(poses)
+    row = {k: i for i, k in enumerate(nodes)}
+    h, w = shape
+    s = 2.0 / np.hypot(w, h)  # frame-centred coordinates of unit half-diagonal
+    T = np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
+    T_inv = np.linalg.inv(T)
+    H_fixed_inv = np.linalg.inv(poses[fixed])
+    P0 = np.zeros((len(nodes), TILT_PARAMS))
+    for k in nodes:
+        P0[row[k], :4] = _similarity_params(T @ H_fixed_inv @ poses[k] @ T_inv)
+    P0[row[fixed], :4] = 0.0
+    column = np.arange(len(nodes) * TILT_PARAMS).reshape(-1, TILT_PARAMS)
+    column[row[fixed], :4] = -1
+    free = column >= 0
+    column[free] = np.arange(int(free.sum()))
+    gaps = np.diff(np.array(nodes, dtype=np.float64))
+    # the tilts' residuals in the points' units (px / sd): a tilt change dp moves the corner
+    # by about dp / s px
+    smooth = 1.0 / (tilt_step_px * s * np.sqrt(gaps))
+
+    def problem(kept: list[Constraint]) -> _TiltedProblem:
+        sizes = [len(c.xy_a) for c in kept]
+        xy_a = np.concatenate([c.xy_a for c in kept]).astype(np.float64) * s + T[:2, 2]
+        xy_b = np.concatenate([c.xy_b for c in kept]).astype(np.float64) * s + T[:2, 2]
+        return _TiltedProblem(
+            np.repeat([row[c.a] for c in kept], sizes),
+            np.repeat([row[c.b] for c in kept], sizes),
+            np.hstack([xy_a, np.ones((len(xy_a), 1))]),
+            xy_b,
+            np.repeat([c.weight for c in kept], sizes) / s,
+            np.repeat(np.arange(len(kept)), sizes),
+            np.arange(len(nodes) - 1),
+            np.arange(1, len(nodes)),
+            smooth,
+            1.0 / (tilt_prior_px * s),
+        )
+
+    def solve(kept: list[Constraint]) -> tuple[np.ndarray, np.ndarray, np.ndarray, _TiltedProblem]:
+        pb = problem(kept)
+
+        def full(x: np.ndarray) -> np.ndarray:
+            params = P0.copy()
+            params[free] = x
+            return params
+
+        before = _tilted_residuals(P0, pb)
+        x = _levenberg_marquardt(
+            lambda x: _tilted_residuals(full(x), pb),
+            lambda x: _tilted_jacobian(full(x), pb, column),
+            P0[free],
+            loss_scale_px,
+        )
+        return full(x), before, _tilted_residuals(full(x), pb), pb
+
+    params, before, after, pb = solve(constraints)
+    n_points = 2 * len(pb.a)
+    weights = np.array([c.weight for c in constraints])
+    per_constraint = _constraint_rms(after[:n_points], pb, weights)  # type: ignore[arg-type]
+    loops = np.array([c.loop for c in constraints])
+    keep = ~loops | (per_constraint <= max_loop_rms_px)
+    kept = [c for c, k in zip(constraints, keep, strict=True) if k]
+    if len(kept) < len(constraints):
+        params, _, after, pb = solve(kept)
+    M = _tilted_matrices(params)
+    to_ref = np.linalg.inv(M[row[fixed]])
+    refined = {}
+    for k in nodes:
+        H = poses[fixed] @ T_inv @ to_ref @ M[row[k]] @ T
+        refined[k] = H / H[2, 2]
+    refined[fixed] = poses[fixed]
+    rms_before, rms_after = _rms(before[:n_points]), _rms(after[: 2 * len(pb.a)])
+    log.info(
+        "pose graph (tilted views): %d poses, %d constraints (%d loop closures dropped), "
+        "residual RMS %.2f -> %.2f px",
+        len(poses),
+        len(kept),
+        len(constraints) - len(kept),
+        rms_before,
+        rms_after,
+    )
+    return Refinement(refined, rms_before, rms_after, len(kept), len(constraints) - len(kept))

@@ -30,7 +30,7 @@ import numpy as np
 from mosaic.config import Config
 from mosaic.features import Features
 from mosaic.matching import Matches, match_descriptors
-from mosaic.posegraph import Constraint, Refinement, refine_poses
+from mosaic.posegraph import Constraint, Refinement, refine_poses, refine_tilted_poses
 from mosaic.refine import track_points
 from mosaic.registration import Registration, estimate_motion, perspective_needed
 
@@ -214,6 +214,7 @@ def _tracked(
         reproj_error_px=refit.reproj_error_px,
         model=refit.model,
         corner_sd_px=refit.corner_sd_px,
+        points=refit.points,
     )
 
 
@@ -317,6 +318,8 @@ class KeyframeTracker:
     LOOP_CANDIDATES = 3  # older keyframes tried per new keyframe
     GOOD_INLIERS = 100  # a registration this strong is not compared with other keyframes
     GRID = 3  # constraint points per side: the chosen model's prediction on a GRID x GRID grid
+    LINK_POINTS = 24  # tilted pose graph: inlier points per link (evenly through the inliers)
+    POINT_SD_PX = 1.0  # ... each with this weight's inverse (tracked inliers: ~0.5-1 px)
     LINK_AGREEMENT_PX = 25.0  # an extra link must place the frame this close to its reference
     MIN_SD_PX = 1.0  # constraint weight = 1 / max(expected corner error, this)
 
@@ -333,6 +336,7 @@ class KeyframeTracker:
         self._lost = False  # the last frame failed against every candidate
         self._lost_cursor = 0
         self._perspective = PerspectiveEvidence()  # the video's views: with perspective or not
+        self._shape: tuple[int, int] | None = None  # (h, w) of the frames
 
     @property
     def _prev_index(self) -> int | None:
@@ -516,6 +520,7 @@ class KeyframeTracker:
     # -- committing ------------------------------------------------------------------------
     def commit(self, index: int, features: Features, shape: tuple[int, int], track: Track) -> None:
         assert track.H_frame_to_ref is not None
+        self._shape = shape
         self._last_pose = track.H_frame_to_ref
         self._poses[index] = track.H_frame_to_ref
         prev = self._prev
@@ -589,9 +594,17 @@ class KeyframeTracker:
         shape: tuple[int, int],
         loop: bool = False,
     ) -> None:
-        """Frame a registered onto frame b: the chosen model's prediction on a grid over a,
-        weighted by how well that model is expected to place the frame."""
+        """Frame a registered onto frame b. For the tilted pose graph, inlier points spread
+        through the registration's inliers: they carry what a similarity per link leaves out.
+        Otherwise the chosen model's prediction on a grid over a, weighted by how well that
+        model is expected to place the frame."""
         assert registration.H_cur_to_prev is not None
+        points = registration.points
+        if self._kcfg.tilt_step_px > 0 and points is not None and len(points[0]) >= 4:
+            pick = np.linspace(0, len(points[0]) - 1, min(len(points[0]), self.LINK_POINTS))
+            xy_a, xy_b = (p[pick.round().astype(int)].astype(np.float64) for p in points)
+            self._constraints.append(Constraint(a, b, xy_a, xy_b, loop, 1 / self.POINT_SD_PX))
+            return
         h, w = shape
         gx, gy = np.meshgrid(np.linspace(0, w, self.GRID), np.linspace(0, h, self.GRID))
         xy_a = np.stack([gx.ravel(), gy.ravel()], 1)
@@ -628,7 +641,15 @@ class KeyframeTracker:
     def refine(self) -> Refinement | None:
         if not self._kcfg.refine or len(self._poses) < 2:
             return None
-        result = refine_poses(self._poses, self._constraints, fixed=min(self._poses))
+        fixed = min(self._poses)
+        tilted = self._kcfg.tilt_step_px > 0 and self._shape is not None
+        if tilted:
+            assert self._shape is not None
+            result = refine_tilted_poses(
+                self._poses, self._constraints, fixed, self._shape, self._kcfg.tilt_step_px
+            )
+        else:
+            result = refine_poses(self._poses, self._constraints, fixed)
         self._poses.update(result.poses)
         for kf in self._keyframes.values():
             kf.H_to_ref = self._poses[kf.frame_index]
@@ -637,6 +658,7 @@ class KeyframeTracker:
             "rms_after_px": round(result.rms_after_px, 3),
             "constraints": result.n_constraints,
             "dropped_loop_closures": result.dropped_loops,
+            "pose_model": "tilted" if tilted else "homography",
         }
         return result
 
