@@ -142,7 +142,7 @@ class KeyframesConfig:
     loop_closure: bool = True  # match new keyframes against older overlapping ones too
     loop_min_overlap: float = 0.3  # predicted overlap that makes an old keyframe a loop candidate
     refine: bool = True  # pose-graph refinement of the keyframes at the end of the video
-    tilt_step_px: float = 0.2  # pose graph: each view is a similarity times a tilt whose effect
+    tilt_step_px: float = 0.4  # pose graph: each view is a similarity times a tilt whose effect
     # at the frame corner changes about this much per frame, fitted to the links' inlier points
     # (0: free homographies fitted to each link's chosen model)
     rerender: bool = True  # re-read the video to render the mosaic from refined poses

@@ -393,7 +393,7 @@ def refine_tilted_poses(
     constraints: list[Constraint],
     fixed: int,
     shape: tuple[int, int],
-    tilt_step_px: float = 0.2,
+    tilt_step_px: float = 0.4,
     tilt_prior_px: float = 30.0,
     loss_scale_px: float = 2.0,
     max_loop_rms_px: float = 5.0,
