@@ -642,8 +642,7 @@ class KeyframeTracker:
         if not self._kcfg.refine or len(self._poses) < 2:
             return None
         fixed = min(self._poses)
-        tilted = self._kcfg.tilt_step_px > 0 and self._shape is not None
-        if tilted:
+        if self._kcfg.tilt_step_px > 0 and self._shape is not None:
             assert self._shape is not None
             result = refine_tilted_poses(
                 self._poses, self._constraints, fixed, self._shape, self._kcfg.tilt_step_px
@@ -658,7 +657,7 @@ class KeyframeTracker:
             "rms_after_px": round(result.rms_after_px, 3),
             "constraints": result.n_constraints,
             "dropped_loop_closures": result.dropped_loops,
-            "pose_model": "tilted" if tilted else "homography",
+            "pose_model": result.pose_model,
         }
         return result
 

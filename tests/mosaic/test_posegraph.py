@@ -148,6 +148,7 @@ def test_tilted_pose_graph_removes_the_drift_of_similarity_links_between_tilted_
     assert errors.max() < 0.5 * similar.max(), (errors.max(), similar.max())
     assert errors.mean() < 0.5 * similar.mean(), (errors.mean(), similar.mean())
     assert tilted.rms_after_px < 1.0  # noise 0.5 px per coordinate
+    assert tilted.pose_model == "tilted" and tilted.tilt_gain > 0.05  # measured 0.11
     np.testing.assert_array_equal(tilted.poses[0], initial[0])
 
 
@@ -157,6 +158,10 @@ def test_tilted_pose_graph_keeps_untilted_views_where_they_are():
     views = _tilted_views(n, tilt=0.0, rng=rng)
     links = _one_sided_links(views, _keyframe_pairs(n), rng)
     truth = {k: np.linalg.inv(views[0]) @ views[k] for k in range(n)}
-    errors = _errors_to_truth(refine_tilted_poses(truth, links, 0, SHAPE).poses, views)
-    assert errors.max() < 2.0, errors
+    result = refine_tilted_poses(truth, links, 0, SHAPE)
+    # the tilt's two parameters per frame fit only noise here (gain measured 0.006): the
+    # graph keeps the views untilted
+    assert result.pose_model == "similarity", result.tilt_gain
+    errors = _errors_to_truth(result.poses, views)
+    assert errors.max() < 1.5, errors
     assert errors.mean() < 1.0, errors
