@@ -7,6 +7,9 @@ those points from one node into the other, scaled by the constraint's weight. A 
 loss limits the pull of bad points; a loop closure that still disagrees with the solution by
 more than `max_loop_rms_px` is dropped and the graph solved again, so one wrong closure cannot
 bend the whole mosaic.
+
+`refine_tilted_poses` (the default on tracked links) models each view instead as a similarity
+times a slowly varying tilt, fitted to the links' inlier points: see the section below.
 """
 
 from __future__ import annotations
