@@ -276,7 +276,6 @@ def refine_poses(
 # links' inlier points, so each frame's tilt is set by many links at once.
 # per node: the similarity (a, b, tx, ty), S = [[1 + a, -b, tx], [b, 1 + a, ty]]; the tilt (p, q)
 TILT_PARAMS = 6
-FD_STEP = 1e-6  # finite-difference step of the Jacobian (normalised units)
 # The tilt is kept only where it lowers the squared RMS of the links' point residuals by this
 # share: freeing two parameters per frame always lowers it a little. Measured on the tuning
 # sets (78 videos, fitted with and without the tilt): 0.008-0.015 on the 37 videos without tilt
@@ -316,6 +315,41 @@ def _tilted_point_residuals(
     return np.stack([X / w, Y / w], 1) - xy_b
 
 
+def _tilted_point_derivatives(pa: np.ndarray, pb: np.ndarray, xy_a: np.ndarray) -> np.ndarray:
+    """(M, 2, 12) derivatives of `_tilted_point_residuals` by node a's six parameters, then
+    node b's, per point (the same chain of products, differentiated step by step)."""
+    x, y = xy_a[:, 0], xy_a[:, 1]
+    w0 = pa[:, 4] * x + pa[:, 5] * y + 1.0
+    c0, d0 = 1.0 + pa[:, 0], pa[:, 1]
+    X2 = c0 * x - d0 * y + (pa[:, 2] - pb[:, 2]) * w0
+    Y2 = d0 * x + c0 * y + (pa[:, 3] - pb[:, 3]) * w0
+    c1, d1, p1, q1 = 1.0 + pb[:, 0], pb[:, 1], pb[:, 4], pb[:, 5]
+    X, Y = c1 * X2 + d1 * Y2, c1 * Y2 - d1 * X2
+    n2 = c1 * c1 + d1 * d1
+    W = n2 * w0 - p1 * X - q1 * Y
+    zero = np.zeros_like(x)
+    # d(X2, Y2) and d(W0) by node a's parameters; node b's act after S_b^-1 or on W directly
+    dX2 = [x, -y, w0, zero, (pa[:, 2] - pb[:, 2]) * x, (pa[:, 2] - pb[:, 2]) * y]
+    dY2 = [y, x, zero, w0, (pa[:, 3] - pb[:, 3]) * x, (pa[:, 3] - pb[:, 3]) * y]
+    dW0 = [zero, zero, zero, zero, n2 * x, n2 * y]
+    dX = [c1 * dx + d1 * dy for dx, dy in zip(dX2, dY2, strict=True)]
+    dY = [c1 * dy - d1 * dx for dx, dy in zip(dX2, dY2, strict=True)]
+    # node b: c1, d1 (scale and sign of S_b^-1), tx1, ty1 (through X2, Y2), p1, q1 (on W)
+    dX += [X2, Y2, -c1 * w0, -d1 * w0, zero, zero]
+    dY += [Y2, -X2, d1 * w0, -c1 * w0, zero, zero]
+    dW0 += [2 * c1 * w0, 2 * d1 * w0, zero, zero, zero, zero]
+    out = np.empty((len(x), 2, 2 * TILT_PARAMS))
+    for k in range(2 * TILT_PARAMS):
+        dW = dW0[k] - p1 * dX[k] - q1 * dY[k]
+        if k == 10:
+            dW = dW - X
+        elif k == 11:
+            dW = dW - Y
+        out[:, 0, k] = (dX[k] - X / W * dW) / W
+        out[:, 1, k] = (dY[k] - Y / W * dW) / W
+    return out
+
+
 @dataclass(frozen=True)
 class _TiltedProblem:
     a: np.ndarray  # (M,) node row of each point's frame
@@ -339,30 +373,22 @@ def _tilted_residuals(params: np.ndarray, pb: _TiltedProblem) -> np.ndarray:
 
 
 def _tilted_jacobian(params: np.ndarray, pb: _TiltedProblem, column: np.ndarray) -> csr_matrix:
-    """Sparse Jacobian: each point's residual depends on its two nodes only (central
-    differences on those, all points at once); the priors are linear."""
+    """Sparse Jacobian: each point's residual depends on its two nodes only; the priors are
+    linear."""
     m = len(pb.a)
     pa, pbb = params[pb.a], params[pb.b]
     rows, cols, vals = [], [], []
     point_rows = np.arange(2 * m).reshape(m, 2)
+    deriv = _tilted_point_derivatives(pa, pbb, pb.xy_a) * pb.scale[:, None, None]
     for side, nodes in ((0, pb.a), (1, pb.b)):
         for k in range(TILT_PARAMS):
             col = column[nodes, k]
             keep = col >= 0
             if not keep.any():
                 continue
-            d = np.zeros_like(pa)
-            d[:, k] = FD_STEP
-            plus = (pa + d, pbb) if side == 0 else (pa, pbb + d)
-            minus = (pa - d, pbb) if side == 0 else (pa, pbb - d)
-            deriv = (
-                _tilted_point_residuals(*plus, pb.xy_a, pb.xy_b)
-                - _tilted_point_residuals(*minus, pb.xy_a, pb.xy_b)
-            ) / (2 * FD_STEP)
-            deriv *= pb.scale[:, None]
             rows.append(point_rows[keep].ravel())
             cols.append(np.repeat(col[keep], 2))
-            vals.append(deriv[keep].ravel())
+            vals.append(deriv[keep, :, side * TILT_PARAMS + k].ravel())
     base = 2 * m
     for j in range(2):  # smoothness rows: (tilt_next - tilt_prev) * w
         r = base + 2 * np.arange(len(pb.prev)) + j

@@ -1,6 +1,12 @@
 import numpy as np
 
-from mosaic.posegraph import Constraint, refine_poses, refine_tilted_poses
+from mosaic.posegraph import (
+    Constraint,
+    _tilted_point_derivatives,
+    _tilted_point_residuals,
+    refine_poses,
+    refine_tilted_poses,
+)
 from mosaic.tracking import corners, project
 from tests.helpers import similarity
 
@@ -165,3 +171,18 @@ def test_tilted_pose_graph_keeps_untilted_views_where_they_are():
     errors = _errors_to_truth(result.poses, views)
     assert errors.max() < 1.5, errors
     assert errors.mean() < 1.0, errors
+
+
+def test_tilted_derivatives_match_finite_differences():
+    rng = np.random.default_rng(3)
+    pa, pb = rng.normal(0, 0.1, (50, 6)), rng.normal(0, 0.1, (50, 6))
+    xy_a = np.hstack([rng.normal(0, 0.5, (50, 2)), np.ones((50, 1))])
+    xy_b = rng.normal(0, 0.5, (50, 2))
+    analytic = _tilted_point_derivatives(pa, pb, xy_a)
+    h = 1e-6
+    for k in range(12):
+        step = np.zeros((50, 12))
+        step[:, k] = h
+        plus = _tilted_point_residuals(pa + step[:, :6], pb + step[:, 6:], xy_a, xy_b)
+        minus = _tilted_point_residuals(pa - step[:, :6], pb - step[:, 6:], xy_a, xy_b)
+        np.testing.assert_allclose(analytic[:, :, k], (plus - minus) / (2 * h), atol=1e-7)
