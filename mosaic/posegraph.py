@@ -274,15 +274,16 @@ def refine_poses(
 # homographies fitted per link are too noisy where the matches sit on one side. Here the tilt
 # is a per-frame state with a smoothness prior, fitted jointly with the similarities to all
 # links' inlier points, so each frame's tilt is set by many links at once.
+
 # per node: the similarity (a, b, tx, ty), S = [[1 + a, -b, tx], [b, 1 + a, ty]]; the tilt (p, q)
 TILT_PARAMS = 6
 # The tilt is kept only where it lowers the squared RMS of the links' point residuals by this
 # share: freeing two parameters per frame always lowers it a little. Measured on the tuning
-# sets (78 videos, fitted with and without the tilt): 0.008-0.015 on the 37 videos without tilt
-# where the tilt made things worse (noise wandering into the tilt, amplified with distance: 3 of
-# them lost 0.25-0.56 within 10 px), 0.016-0.028 on the rest of them, where it did no harm;
-# 0.018-0.41 on the tilted videos but two (0.010, 0.013). Within 10 px over the 78: similarity
-# links (the former graph) 0.934, tilt always 0.959, tilt where it gains this much 0.970.
+# sets (78 videos, fitted with and without the tilt): 0.008-0.028 on the 37 untilted videos,
+# 0.011-0.015 on the three of them the tilt harmed (noise wandering into the tilt, amplified
+# with distance: they lost 0.25-0.56 within 10 px); 0.018-0.41 on the 41 tilted videos but two
+# (0.010, 0.013). Within 10 px over the 78: the former graph 0.934, the tilt always 0.959, the
+# tilt where it gains this much 0.970.
 TILT_MIN_GAIN = 0.016
 
 
