@@ -22,6 +22,8 @@ import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix, diags
 from scipy.sparse.linalg import spsolve
 
+from mosaic.registration import frame_normaliser
+
 log = logging.getLogger(__name__)
 
 MAX_ITERATIONS = 30  # Levenberg-Marquardt steps: bounded time on long videos
@@ -415,17 +417,16 @@ def _tilted_jacobian(params: np.ndarray, pb: _TiltedProblem, column: np.ndarray)
 
 
 def _similarity_params(G: np.ndarray) -> np.ndarray:
-    """(a, b, tx, ty) of the similarity nearest a normalised homography (on a 3x3 grid)."""
+    """(N, 4) (a, b, tx, ty) of the similarity nearest each normalised homography of (N, 3, 3),
+    least squares on a centred 3x3 grid: in complex numbers, (1 + a + ib) = sum(conj(z) w) /
+    sum(|z|^2) and t = mean(w) for grid points z mapped to w."""
     g = np.stack(np.meshgrid(np.linspace(-0.7, 0.7, 3), np.linspace(-0.7, 0.7, 3)), -1)
-    src = g.reshape(-1, 2)
-    p = np.hstack([src, np.ones((len(src), 1))]) @ G.T
-    dst = p[:, :2] / p[:, 2:]
-    x, y = src.T
-    A = np.zeros((2 * len(src), 4))
-    A[0::2] = np.stack([x, -y, np.ones_like(x), np.zeros_like(x)], 1)
-    A[1::2] = np.stack([y, x, np.zeros_like(x), np.ones_like(x)], 1)
-    s, *_ = np.linalg.lstsq(A, dst.ravel(), rcond=None)
-    return np.array([s[0] - 1, s[1], s[2], s[3]])
+    z = g.reshape(-1, 2) @ np.array([1.0, 1j])
+    p = np.einsum("nij,kj->nki", G, np.hstack([g.reshape(-1, 2), np.ones((9, 1))]))
+    w = (p[..., :2] / p[..., 2:]) @ np.array([1.0, 1j])
+    t = w.mean(1)
+    m = (np.conj(z) * w).sum(1) / (np.abs(z) ** 2).sum()
+    return np.stack([m.real - 1, m.imag, t.real, t.imag], 1)
 
 
 def refine_tilted_poses(
@@ -446,14 +447,11 @@ def refine_tilted_poses(
         return Refinement(dict(poses), 0.0, 0.0, len(constraints))
     nodes = sorted(poses)
     row = {k: i for i, k in enumerate(nodes)}
-    h, w = shape
-    s = 2.0 / np.hypot(w, h)  # frame-centred coordinates of unit half-diagonal
-    T = np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
-    T_inv = np.linalg.inv(T)
+    T = frame_normaliser(shape)  # frame-centred coordinates of unit half-diagonal
+    s, T_inv = T[0, 0], np.linalg.inv(T)
     H_fixed_inv = np.linalg.inv(poses[fixed])
     P0 = np.zeros((len(nodes), TILT_PARAMS))
-    for k in nodes:
-        P0[row[k], :4] = _similarity_params(T @ H_fixed_inv @ poses[k] @ T_inv)
+    P0[:, :4] = _similarity_params(T @ H_fixed_inv @ np.stack([poses[k] for k in nodes]) @ T_inv)
     P0[row[fixed], :4] = 0.0
     column = np.arange(len(nodes) * TILT_PARAMS).reshape(-1, TILT_PARAMS)
     column[row[fixed], :4] = -1

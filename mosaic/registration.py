@@ -333,7 +333,7 @@ def perspective_needed(evidence: float, model: str) -> bool:
     return evidence * extra >= extra + ADEQUATE_Z * np.sqrt(2 * extra)
 
 
-def _normaliser(shape: tuple[int, int]) -> np.ndarray:
+def frame_normaliser(shape: tuple[int, int]) -> np.ndarray:
     """A similarity taking frame pixels to coordinates centred on the frame, unit half-diagonal
     (keeps each model class: a similarity stays a similarity)."""
     h, w = shape
@@ -420,7 +420,7 @@ def estimate_motion(
         consensus = estimate_homography(xy_cur, xy_prev, config)
     if consensus.H_cur_to_prev is None or not config.refine:
         return consensus
-    T = _normaliser(shape)
+    T = frame_normaliser(shape)
     a_all, b_all = _to_norm(T, xy_cur), _to_norm(T, xy_prev)
     corners = _to_norm(T, np.array([[0, 0], [shape[1], 0], [shape[1], shape[0]], [0, shape[0]]]))
     M = T @ consensus.H_cur_to_prev @ np.linalg.inv(T)
@@ -562,7 +562,7 @@ def robust_fit(
     beyond its chi-square bound k + ADEQUATE_Z sqrt(2k)). `homography_threshold_px` (default
     `threshold_px`) bounds the homography's residuals: on a curved retina they reach ~10 px
     at 2912 px however precise the matches, so a tight bound would keep only part of them."""
-    T = _normaliser(shape)
+    T = frame_normaliser(shape)
     a_all, b_all = _to_norm(T, xy_cur), _to_norm(T, xy_prev)
     w0 = np.ones(len(a_all)) if weights is None else np.asarray(weights, np.float64)
     M = T @ H0 @ np.linalg.inv(T)
