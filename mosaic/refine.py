@@ -26,7 +26,6 @@ import cv2
 import numpy as np
 
 from mosaic.config import RegistrationConfig
-from mosaic.preprocess import erode_by_disc
 from mosaic.registration import RobustFit, apply_homography, apply_quadratic, robust_fit
 
 log = logging.getLogger(__name__)
@@ -58,6 +57,24 @@ def _smooth(image: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
+def _erode_by_octagon(mask: np.ndarray, radius_px: int) -> np.ndarray:
+    """`preprocess.erode_by_disc` with an octagon for the disc (a square, then a diamond): it
+    contains the disc, its corners reach 1.082 radii, and it is ~6x faster at 16 px (an
+    elliptic kernel is not separable)."""
+    square = round(radius_px * (1 - np.sqrt(0.5)) / np.sqrt(0.5))  # half-side: the diagonal
+    diamond = radius_px - square  # extent matches the axes' (both radius_px)
+    out = mask
+    if square > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * square + 1, 2 * square + 1))
+        out = cv2.erode(out, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=255)
+    if diamond > 0:
+        cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+        out = cv2.erode(
+            out, cross, iterations=diamond, borderType=cv2.BORDER_CONSTANT, borderValue=255
+        )
+    return out
+
+
 def lk_texture(gray: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """The frame's band-passed texture as uint8 (±3 sd around 128): illumination, vignetting
     and gain changes removed, vessels kept, for `track_points`. Outside `mask` (uint8, 0 = no
@@ -68,7 +85,7 @@ def lk_texture(gray: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     hp = cv2.subtract(g, _smooth(g, coarse))
     valid = None
     if mask is not None and not mask.all():
-        valid = erode_by_disc(mask, round(2 * coarse))
+        valid = _erode_by_octagon(mask, round(2 * coarse))
     _, sd = cv2.meanStdDev(hp, mask=valid if valid is not None and valid.any() else None)
     gain = 127.5 / (3.0 * float(sd[0, 0]) + 1e-6)
     texture = cv2.addWeighted(hp, gain, hp, 0.0, 127.0, dtype=cv2.CV_8U)  # saturating

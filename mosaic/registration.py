@@ -85,9 +85,12 @@ def _failed(n: int, inliers: np.ndarray, reason: str, model: str = "homography")
 
 def transfer_errors(H: np.ndarray, xy_cur: np.ndarray, xy_prev: np.ndarray) -> np.ndarray:
     """Distance (px) between each current point mapped by `H` and its match."""
-    p = np.hstack([xy_cur.astype(np.float64), np.ones((len(xy_cur), 1))]) @ H.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.linalg.norm(p[:, :2] / p[:, 2:] - xy_prev, axis=1)
+    x, y = xy_cur[:, 0].astype(np.float64), xy_cur[:, 1].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+        dx = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w - xy_prev[:, 0]
+        dy = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w - xy_prev[:, 1]
+        err = np.sqrt(dx * dx + dy * dy)
     return np.where(np.isfinite(err), err, np.inf)
 
 
@@ -175,16 +178,18 @@ def _linear_consensus(
 
 def _design(model: str, xy: np.ndarray) -> np.ndarray:
     """(N, 2, k) derivative of the mapped points by the parameters of a linear model."""
-    n = len(xy)
     x, y = xy[:, 0], xy[:, 1]
-    one, zero = np.ones(n), np.zeros(n)
+    k = N_PARAMS[model]
+    A = np.zeros((len(xy), 2, k))
     if model == "translation":
-        rows = [[one, zero], [zero, one]]
+        A[:, 0, 0] = A[:, 1, 1] = 1.0
     elif model == "similarity":  # x' = a x - b y + tx, y' = b x + a y + ty
-        rows = [[x, -y, one, zero], [y, x, zero, one]]
+        A[:, 0, 0], A[:, 0, 1], A[:, 0, 2] = x, -y, 1.0
+        A[:, 1, 0], A[:, 1, 1], A[:, 1, 3] = y, x, 1.0
     else:  # affine
-        rows = [[x, y, one, zero, zero, zero], [zero, zero, zero, x, y, one]]
-    return np.stack([np.stack(r, axis=1) for r in rows], axis=1)
+        A[:, 0, 0], A[:, 0, 1], A[:, 0, 2] = x, y, 1.0
+        A[:, 1, 3], A[:, 1, 4], A[:, 1, 5] = x, y, 1.0
+    return A
 
 
 def _linear_matrix(model: str, p: np.ndarray) -> np.ndarray:
@@ -255,14 +260,13 @@ def _fit(model: str, a: np.ndarray, b: np.ndarray, w: np.ndarray, M0: np.ndarray
     k = A.shape[2]
     target = b - a if model == "translation" else b  # x' = x + t
     A2, rhs = A.reshape(-1, k), (target[:, :, None] * sw).reshape(-1)
-    p, *_ = np.linalg.lstsq(A2, rhs, rcond=None)
-    JtJ = A2.T @ A2
-    M = _linear_matrix(model, p)
-    r = rhs - A2 @ p
-    try:
-        JtJ_inv = np.linalg.inv(JtJ)
+    try:  # normal equations: normalised coordinates keep them well conditioned
+        JtJ_inv = np.linalg.inv(A2.T @ A2)
     except np.linalg.LinAlgError:
         return None
+    p = JtJ_inv @ (A2.T @ rhs)
+    M = _linear_matrix(model, p)
+    r = rhs - A2 @ p
     if not np.isfinite(M).all() or not np.isfinite(JtJ_inv).all():
         return None
     return _Fit(model, M, JtJ_inv, float(r @ r))

@@ -123,3 +123,19 @@ def test_texture_band_pass_at_quarter_resolution_matches_the_full_gaussian(fundu
     inner = (slice(30, -30), slice(30, -30))  # the borders differ by their extrapolation
     spread = float((g - exact)[inner].std())
     assert float((_smooth(g, coarse) - exact)[inner].std()) < 0.02 * spread
+
+
+def test_octagon_erosion_is_the_disc_erosion_within_its_corners():
+    """`_erode_by_octagon` stands in for the elliptic-kernel erosion in `lk_texture`: what it
+    keeps lies more than the radius inside the mask, and it keeps all that lies 8 % further
+    (its corners, at 1.082 radii) and half a pixel more."""
+    from mosaic.refine import _erode_by_octagon
+
+    yy, xx = np.mgrid[0:300, 0:400]
+    mask = np.where(np.hypot(xx - 200, yy - 150) < 140, 255, 0).astype(np.uint8)
+    mask[100:140, 60:120] = 0  # a square overlay: corners as well as the round edge
+    inside = cv2.distanceTransform(mask, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    for radius in (3, 8, 16, 24):
+        kept = _erode_by_octagon(mask, radius) > 0
+        assert inside[kept].min() > radius
+        assert kept[inside > 1.082 * radius + 0.5].all()
