@@ -730,6 +730,9 @@ class LiveCompositor:
     """
 
     HISTORY = 15  # recent frames whose median sharpness is the reference
+    # Every SHADING_EVERY-th frame feeds the flat-field estimate: consecutive frames see much
+    # the same places at the same shading, and the observation costs ~5 ms a frame
+    SHADING_EVERY = 2
 
     def __init__(
         self, config: ComposeConfig, photometry: VideoPhotometry, correct: bool = True
@@ -742,6 +745,7 @@ class LiveCompositor:
         self._shading = _ShadingMosaic(config) if config.flatfield else None
         self._recent: deque[float] = deque(maxlen=self.HISTORY)
         self.frame_shape: tuple[int, int] | None = None  # (h, w) of the frames as decoded
+        self._added = 0
 
     def add(
         self, canvas: Canvas, image: np.ndarray, H_frame_to_ref: np.ndarray, mask: np.ndarray
@@ -752,8 +756,9 @@ class LiveCompositor:
         if not canvas.fits(H_frame_to_ref, image.shape[:2]):
             canvas.add(image, H_frame_to_ref, mask)  # raises, naming the cap
         self.frame_shape = (int(image.shape[0]), int(image.shape[1]))
-        if self._shading is not None:
+        if self._shading is not None and self._added % self.SHADING_EVERY == 0:
             self._shading.observe(self.photometry, image, H_frame_to_ref, mask)
+        self._added += 1
         if not self._correct:
             canvas.add(image, H_frame_to_ref, mask)
             return None
