@@ -16,6 +16,8 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
     import json
     import logging
     import re
+    import signal
+    import threading
     import time
     from collections.abc import Iterator
     from contextlib import contextmanager
@@ -71,6 +73,24 @@ def _user_errors() -> Iterator[None]:
     except (MosaicError, WeightsError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(EXIT_USER_ERROR) from None
+
+
+@contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM (`kill`, a job scheduler, `docker stop`) handled as Ctrl-C: the run stops where
+    it is and writes what it has, instead of dying with nothing written."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers can only be set from the main thread
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:  # None: a handler not set from Python, which cannot be put back
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 class _OncePerKind(logging.Filter):
@@ -226,7 +246,7 @@ def build(
     _setup_logging(verbose)
     made: list[Viewer] = []
     try:
-        with _user_errors():
+        with _user_errors(), _terminate_as_interrupt():
             config = _config(
                 config_path,
                 detector,
