@@ -547,6 +547,10 @@ def register(
             raise InputError(
                 f"--model must be auto or one of {', '.join(PAIR_MODELS)}, got {model!r}"
             )
+        if pairs is not None and (fixed or moving or warp or matches):
+            given = [n for n, v in (("FIXED/MOVING", fixed or moving), ("--warp", warp),
+                                    ("--matches", matches)) if v]  # fmt: skip
+            raise InputError(f"{' and '.join(given)}: one pair's; not with --pairs")
         if warp is not None:
             warp = check_output_path(warp)
         if matches is not None:

@@ -553,6 +553,21 @@ def test_an_unusable_pairs_csv_is_one_line(tmp_path, content, fragment):
     assert fragment in line
 
 
+@pytest.mark.parametrize(
+    ("extra", "fragment"),
+    [(["--warp", "w.png"], "--warp"), (["--matches", "m.png"], "--matches"),
+     (["a.png", "b.png"], "FIXED/MOVING")],
+)  # fmt: skip
+def test_options_of_one_pair_are_refused_with_pairs(tmp_path, extra, fragment):
+    """--warp, --matches and FIXED MOVING name one pair's outputs: with --pairs they would be
+    ignored, so the command says so instead of running."""
+    (tmp_path / "pairs.csv").write_text("fixed,moving\na.png,b.png\n")
+    args = ["register", "--pairs", str(tmp_path / "pairs.csv"), *extra]
+    line = _one_error_line(runner.invoke(app, args))
+    assert fragment in line and "--pairs" in line
+    assert not (Path.cwd() / "w.png").exists() and not (Path.cwd() / "m.png").exists()
+
+
 # --------------------------------------------------------------------------------------------
 # Evaluate and bench: explicitly named detectors
 # --------------------------------------------------------------------------------------------
