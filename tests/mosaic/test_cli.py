@@ -122,10 +122,11 @@ def test_bad_config_and_output(video, tmp_path):
     _one_line_error(result, "surf")
 
 
-def test_interrupt_writes_partial_mosaic_and_report(video, tmp_path, monkeypatch):
+def _stopped_at(index, stop):
+    """`open_frames` whose frames call `stop()` when frame `index` is read."""
     real_open = mosaic.cli.open_frames
 
-    class Interrupting:
+    class Stopped:
         def __init__(self, *args, **kwargs):
             self._source = real_open(*args, **kwargs)
             self.info = self._source.info
@@ -138,51 +139,41 @@ def test_interrupt_writes_partial_mosaic_and_report(video, tmp_path, monkeypatch
 
         def __iter__(self):
             for frame in self._source:
-                if frame.index == 5:
-                    raise KeyboardInterrupt
+                if frame.index == index:
+                    stop()
                 yield frame
 
-    monkeypatch.setattr(mosaic.cli, "open_frames", Interrupting)
+    return Stopped
+
+
+def _ctrl_c():
+    raise KeyboardInterrupt
+
+
+def _build_partial(video, tmp_path):
+    """`mosaic build` expected to stop part way: exit 130, the partial outputs, the report."""
     out = tmp_path / "partial.png"
     result = runner.invoke(app, ["build", str(video), "-o", str(out), "--detector", "sift"])
     assert result.exit_code == 130
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["summary"]["interrupted"] is True
-    assert report["summary"]["frames_read"] == 5
     assert cv2.imread(str(out)) is not None
+    return report
+
+
+def test_interrupt_writes_partial_mosaic_and_report(video, tmp_path, monkeypatch):
+    monkeypatch.setattr(mosaic.cli, "open_frames", _stopped_at(5, _ctrl_c))
+    assert _build_partial(video, tmp_path)["summary"]["frames_read"] == 5
 
 
 def test_sigterm_writes_partial_mosaic_and_report_like_ctrl_c(video, tmp_path, monkeypatch):
     """`kill`, a job scheduler or `docker stop` send SIGTERM: the run keeps what it has."""
-    real_open = mosaic.cli.open_frames
-
-    class Terminated:
-        def __init__(self, *args, **kwargs):
-            self._source = real_open(*args, **kwargs)
-            self.info = self._source.info
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            self._source.close()
-
-        def __iter__(self):
-            for frame in self._source:
-                if frame.index == 6:
-                    os.kill(os.getpid(), signal.SIGTERM)
-                yield frame
-
-    monkeypatch.setattr(mosaic.cli, "open_frames", Terminated)
+    sigterm = _stopped_at(6, lambda: os.kill(os.getpid(), signal.SIGTERM))
+    monkeypatch.setattr(mosaic.cli, "open_frames", sigterm)
     before = signal.getsignal(signal.SIGTERM)
-    out = tmp_path / "partial.png"
-    result = runner.invoke(app, ["build", str(video), "-o", str(out), "--detector", "sift"])
-    assert result.exit_code == 130
-    report = json.loads(out.with_suffix(".json").read_text())
-    assert report["summary"]["interrupted"] is True
+    report = _build_partial(video, tmp_path)
     # the handler runs in the main thread, which registers a frame or two behind the reader
     assert 3 <= report["summary"]["frames_read"] <= 7
-    assert cv2.imread(str(out)) is not None
     assert signal.getsignal(signal.SIGTERM) == before  # the handler is put back
 
 
