@@ -130,12 +130,19 @@ def _jacobian(params: np.ndarray, pb: _Problem, column: np.ndarray) -> csr_matri
     return coo_matrix((v, (r, c)), shape=(2 * m, n_cols)).tocsr()
 
 
-def _constraint_rms(residuals: np.ndarray, pb: _Problem, weights: np.ndarray) -> np.ndarray:
-    """RMS transfer error (px, without the weights) of each constraint's points."""
-    sq = residuals.reshape(-1, 2) ** 2
-    total = np.bincount(pb.constraint, sq.sum(1), minlength=len(weights))
-    count = np.bincount(pb.constraint, minlength=len(weights))
-    return np.sqrt(total / np.maximum(count, 1)) / weights
+def _consistent(
+    constraints: list[Constraint], point_residuals: np.ndarray, constraint_of: np.ndarray,
+    max_loop_rms_px: float,
+) -> list[Constraint]:  # fmt: skip
+    """The constraints without the loop closures whose points' RMS transfer error (px, without
+    the weights; `point_residuals` weighted, one (x, y) pair per point of `constraint_of`)
+    exceeds `max_loop_rms_px`."""
+    weights = np.array([c.weight for c in constraints])
+    sq = point_residuals.reshape(-1, 2) ** 2
+    total = np.bincount(constraint_of, sq.sum(1), minlength=len(weights))
+    count = np.bincount(constraint_of, minlength=len(weights))
+    rms = np.sqrt(total / np.maximum(count, 1)) / weights
+    return [c for c, r in zip(constraints, rms, strict=True) if not c.loop or r <= max_loop_rms_px]
 
 
 def _solve(
@@ -247,11 +254,7 @@ def refine_poses(
         return Refinement(dict(poses), 0.0, 0.0, len(constraints))
     refined, before, after, pb = _solve(poses, constraints, fixed, loss_scale_px)
     rms_before = _rms(before)
-    weights = np.array([c.weight for c in constraints])
-    per_constraint = _constraint_rms(after, pb, weights)
-    loops = np.array([c.loop for c in constraints])
-    keep = ~loops | (per_constraint <= max_loop_rms_px)
-    kept = [c for c, k in zip(constraints, keep, strict=True) if k]
+    kept = _consistent(constraints, after, pb.constraint, max_loop_rms_px)
     dropped = len(constraints) - len(kept)
     if dropped:
         refined, _, after, _ = _solve(poses, kept, fixed, loss_scale_px)
@@ -357,7 +360,7 @@ def _tilted_point_derivatives(pa: np.ndarray, pb: np.ndarray, xy_a: np.ndarray) 
 class _TiltedProblem:
     a: np.ndarray  # (M,) node row of each point's frame
     b: np.ndarray  # (M,) node row of its match's frame
-    xy_a: np.ndarray  # (M, 3) homogeneous, normalised
+    xy_a: np.ndarray  # (M, 2) normalised
     xy_b: np.ndarray  # (M, 2) normalised
     scale: np.ndarray  # (M,) weight times the normalisation back to pixels
     constraint: np.ndarray  # (M,) constraint of each point
@@ -453,9 +456,17 @@ def refine_tilted_poses(
     P0 = np.zeros((len(nodes), TILT_PARAMS))
     P0[:, :4] = _similarity_params(T @ H_fixed_inv @ np.stack([poses[k] for k in nodes]) @ T_inv)
     P0[row[fixed], :4] = 0.0
-    column = np.arange(len(nodes) * TILT_PARAMS).reshape(-1, TILT_PARAMS)
-    column[row[fixed], :4] = -1
-    column[column >= 0] = np.arange(int((column >= 0).sum()))
+
+    def numbered(free: np.ndarray) -> np.ndarray:
+        """Each free parameter's column in the solve, -1 for those held."""
+        column = np.full(free.shape, -1)
+        column[free] = np.arange(int(free.sum()))
+        return column
+
+    free = np.ones((len(nodes), TILT_PARAMS), bool)
+    free[row[fixed], :4] = False  # the reference's similarity is the identity
+    column = numbered(free)
+    untilted = numbered(free & (np.arange(TILT_PARAMS) < 4))  # every tilt held at zero
     gaps = np.diff(np.array(nodes, dtype=np.float64))
     # the tilts' residuals in the points' units (px / sd): a tilt change dp moves the corner
     # by about dp / s px
@@ -468,7 +479,7 @@ def refine_tilted_poses(
         return _TiltedProblem(
             np.repeat([row[c.a] for c in kept], sizes),
             np.repeat([row[c.b] for c in kept], sizes),
-            np.hstack([xy_a, np.ones((len(xy_a), 1))]),
+            xy_a,
             xy_b,
             np.repeat([c.weight for c in kept], sizes) / s,
             np.repeat(np.arange(len(kept)), sizes),
@@ -477,10 +488,6 @@ def refine_tilted_poses(
             smooth,
             1.0 / (tilt_prior_px * s),
         )
-
-    untilted = column.copy()
-    untilted[:, 4:] = -1  # the same graph with every tilt held at zero
-    untilted[untilted >= 0] = np.arange(int((untilted >= 0).sum()))
 
     def solve(
         kept: list[Constraint], column: np.ndarray
@@ -507,11 +514,7 @@ def refine_tilted_poses(
         constraints kept (loop closures that disagree dropped, solved again)."""
         params, before, after, pb = solve(constraints, column)
         n_points = 2 * len(pb.a)
-        weights = np.array([c.weight for c in constraints])
-        per_constraint = _constraint_rms(after[:n_points], pb, weights)  # type: ignore[arg-type]
-        loops = np.array([c.loop for c in constraints])
-        keep = ~loops | (per_constraint <= max_loop_rms_px)
-        kept = [c for c, k in zip(constraints, keep, strict=True) if k]
+        kept = _consistent(constraints, after[:n_points], pb.constraint, max_loop_rms_px)
         if len(kept) < len(constraints):
             params, _, after, pb = solve(kept, column)
         return params, _rms(before[:n_points]), _rms(after[: 2 * len(pb.a)]), len(kept)
