@@ -38,6 +38,7 @@ import numpy as np
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from mosaic.allocator import keep_freed_memory
 from mosaic.config import Config
 from mosaic.errors import MosaicError, OutputError
 from mosaic.features import FeatureExtractor
@@ -237,6 +238,7 @@ def run_video(
     Raises `MosaicError` for an unusable input or output, and (after writing the report) when
     no frame could be placed on a mosaic that `outputs` asks for.
     """
+    keep_freed_memory()
     video = Path(video)
     started = time.perf_counter()
     outputs = outputs.checked()
