@@ -50,6 +50,7 @@ class BenchRow:
     registered: int
     frames: int
     peak_rss_mb: float  # process peak so far (monotone over the run)
+    overlap: bool | None = None  # next frame extracted meanwhile (auto: as chosen; None: undecided)
     notes: dict[str, Any] = field(default_factory=dict)
 
 
@@ -100,7 +101,8 @@ def run_variant(
     re-render) and collect per-stage timings.
 
     `frame` is the wall time between two registered frames as the caller sees them: with
-    `[pipeline] overlap` the extraction of the next frame runs meanwhile in another thread.
+    `[pipeline] overlap` on (or chosen) the extraction of the next frame runs meanwhile in
+    another thread.
     """
     decode: list[float] = []
     frame_ms: list[float] = []
@@ -144,6 +146,7 @@ def run_variant(
         registered=summary["registered"],
         frames=summary["frames_read"],
         peak_rss_mb=_peak_rss_mb(),
+        overlap=summary["overlap"],
     )
 
 
@@ -167,8 +170,8 @@ def run_bench(
 ) -> list[BenchRow]:
     """Every detector on one synthetic video, then variants of the first one: GLAMpoints on the
     GPU (where CUDA is available) and in the other precision (where the CPU has bfloat16 in
-    hardware), each detection scale in `scales`, without overlap, and with
-    the rerun recording.
+    hardware), each detection scale in `scales`, with `[pipeline] overlap` on and off (those the
+    config does not fix), and with the rerun recording.
 
     A detector that cannot be built (GLAMpoints without its weights, a descriptor it lacks)
     raises `WeightsError` / `ConfigError` when `explicit` (the user named it), else it is
@@ -205,10 +208,11 @@ def run_bench(
             progress(f"{base.name} detecting at scale {scale:g}")
             scaled = with_overrides(cfg, features={"detect_scale": scale})
             rows.append(run_variant(f"{base.name} (scale {scale:g})", video, scaled))
-        progress(f"{base.name} without overlap")
-        serial = with_overrides(cfg, pipeline={"overlap": not cfg.pipeline.overlap})
-        label = "no overlap" if cfg.pipeline.overlap else "overlap"
-        rows.append(run_variant(f"{base.name} ({label})", video, serial))
+        for mode, label in (("on", "overlap"), ("off", "no overlap")):
+            if cfg.pipeline.overlap != mode:
+                progress(f"{base.name} with {label}")
+                fixed = with_overrides(cfg, pipeline={"overlap": mode})
+                rows.append(run_variant(f"{base.name} ({label})", video, fixed))
         if viewer_factory is not None:
             progress(f"{base.name} with --rerun save")
             rrd = Path(tmp) / "bench.rrd"
@@ -234,7 +238,7 @@ def profile_pipeline(
     import pstats
 
     cfg = with_overrides(config or Config(), features={"detector": detector})
-    cfg = with_overrides(cfg, pipeline={"overlap": False})
+    cfg = with_overrides(cfg, pipeline={"overlap": "off"})
     with tempfile.TemporaryDirectory(prefix="mosaic-profile-") as tmp:
         video = make_video(Path(tmp), size, n_frames)
         profiler = cProfile.Profile()
@@ -250,7 +254,7 @@ def profile_pipeline(
 def format_table(rows: list[BenchRow], reference: str = "sift") -> str:
     """Rows = variants; columns = median ms per stage, frame median/p90, fps, ratio to SIFT."""
     ref = next((r for r in rows if r.name == reference), None)
-    header = ["variant", *COLUMNS, "frame", "p90", "fps", f"x{reference}", "reg", "RSS MB"]
+    header = ["variant", *COLUMNS, "frame", "p90", "fps", f"x{reference}", "reg", "RSS MB", "ovl"]
     lines = []
     for r in rows:
         ratio = f"{r.fps / ref.fps:.2f}" if ref is not None and ref.fps > 0 else "-"
@@ -264,6 +268,7 @@ def format_table(rows: list[BenchRow], reference: str = "sift") -> str:
                 ratio,
                 f"{r.registered}/{r.frames}",
                 f"{r.peak_rss_mb:.0f}",
+                {True: "on", False: "off", None: "-"}[r.overlap],
             ]
         )
     widths = [max([len(h), *(len(line[i]) for line in lines)]) for i, h in enumerate(header)]

@@ -749,9 +749,9 @@ def bench(
         typer.echo(format_table(rows))
         notes = [f"{r.name}: {r.notes}" for r in rows if r.notes]
         typer.echo(
-            "ms per stage (median); frame = wall time per registered frame (extraction of "
-            "the next frame overlaps unless '(no overlap)'), p90 over frames; "
-            f"x sift = fps ratio. {'; '.join(notes)}"
+            "ms per stage (median); frame = wall time per registered frame, p90 over frames; "
+            "x sift = fps ratio; ovl = extraction of the next frame overlapped (default rows: "
+            f"as [pipeline] overlap chose). {'; '.join(notes)}"
         )
         typer.echo("environment: " + ", ".join(f"{k}={v}" for k, v in env.items()))
         if profile:

@@ -13,12 +13,13 @@ import contextlib
 import json
 import logging
 import os
-import queue
 import re
 import sys
 import tempfile
 import threading
+from collections import deque
 from collections.abc import Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -545,50 +546,48 @@ def sample_image_path() -> Path:
 
 
 # --------------------------------------------------------------------------------------------
-# Overlapping decode with processing
+# Producing the next items while the current one is processed
 # --------------------------------------------------------------------------------------------
 
 _END = object()
 
 
-def prefetch(items: Iterable[T], depth: int = 2) -> Iterator[T]:
-    """Iterate `items` while a background thread produces the next ones.
+class Lookahead(Iterator[T]):
+    """Iterate `items` while a background thread produces the next ones, up to `depth` ahead,
+    as long as `ahead` is set; it may change between items (`mosaic.pipeline`'s overlap trial).
 
-    Decoding (OpenCV) releases the GIL, so frame i+1 is decoded while frame i is processed.
-    `depth` bounds how many items wait in memory. An exception in the producer is re-raised
-    here; leaving the loop early stops the producer.
+    The items are produced in order by one thread at a time (the caller's, or the one worker's),
+    so a generator is safe here. OpenCV and torch release the GIL, so producing item i+1
+    overlaps the caller's work on item i. An exception in the producer is re-raised here at its
+    item; `close` (or leaving a `with` block) waits for the item in production and stops.
     """
-    if depth <= 0:
-        yield from items
-        return
-    buffer: queue.Queue[Any] = queue.Queue(maxsize=depth)
-    stop = threading.Event()
 
-    def produce() -> None:
-        try:
-            for item in items:
-                while not stop.is_set():
-                    try:
-                        buffer.put(item, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            buffer.put(_END)
-        except BaseException as exc:  # handed to the consumer, which re-raises it
-            buffer.put(exc)
+    def __init__(self, items: Iterable[T], depth: int = 2, ahead: bool = True) -> None:
+        self._items = iter(items)
+        self._depth = depth
+        self._pending: deque[Future[Any]] = deque()
+        self._pool: ThreadPoolExecutor | None = None
+        self.ahead = ahead
 
-    thread = threading.Thread(target=produce, name="prefetch", daemon=True)
-    thread.start()
-    try:
-        while True:
-            item = buffer.get()
-            if item is _END:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
-        thread.join(timeout=1.0)
+    def __next__(self) -> T:
+        item = self._pending.popleft().result() if self._pending else next(self._items, _END)
+        if item is _END:
+            self._pending.clear()
+            raise StopIteration
+        if self.ahead:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix="lookahead")
+            while len(self._pending) < self._depth:
+                self._pending.append(self._pool.submit(next, self._items, _END))
+        return item
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+        self._pending.clear()
+
+    def __enter__(self) -> Lookahead[T]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

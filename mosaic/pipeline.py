@@ -29,7 +29,7 @@ from mosaic.compose import Canvas, LiveCompositor, photometry_report, render_seg
 from mosaic.config import Config, config_to_dict
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features, to_frame_pixels
-from mosaic.io import Frame, prefetch
+from mosaic.io import Frame, Lookahead
 from mosaic.matching import Matches, match_descriptors
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import (
@@ -143,6 +143,55 @@ class _Timer:
         return out
 
 
+class OverlapTrial:
+    """Whether to extract the next frame while this one registers (`[pipeline] overlap`).
+
+    "on" / "off" fix it. "auto" times both on the stream's first frames and keeps the faster:
+    overlapping pays only where the machine has a core to spare for it (measured on 2 cores
+    without one: the detector's two threads and the registration contend, 87 against 78 ms a
+    frame serially; on other machines it gained 15 %). Results are the same either way, only
+    the speed differs. Frame time is the caller's wall time between two frames; the frames
+    right after a switch (still extracted ahead, or not yet) are not timed.
+    """
+
+    WARMUP = 3  # frames before timing: first frames carry one-off costs (weights, buffers)
+    FRAMES = 10  # timed frames each way
+
+    def __init__(self, mode: str, clock: Callable[[], float] = time.perf_counter) -> None:
+        self.mode, self._clock = mode, clock
+        self.chosen: bool | None = None if mode == "auto" else mode == "on"
+        self._times: dict[bool, list[float]] = {True: [], False: []}
+        self._count = 0
+        self._last: float | None = None
+
+    def ahead(self) -> bool:
+        """Extract ahead while the coming frame registers?"""
+        if self.chosen is not None:
+            return self.chosen
+        return self._count < self.WARMUP + self.FRAMES  # overlapped first, then serial
+
+    def tick(self) -> None:
+        """A frame was delivered: time it and, when both ways are timed, choose."""
+        now = self._clock()
+        last, self._last = self._last, now
+        if self.chosen is not None or last is None:
+            return
+        self._count += 1
+        switched = self.WARMUP + self.FRAMES
+        timed = self._count > self.WARMUP and self._count not in (switched + 1, switched + 2)
+        if timed:
+            self._times[self._count <= switched].append(now - last)
+        if len(self._times[False]) == self.FRAMES:
+            on, off = (float(np.median(self._times[k])) for k in (True, False))
+            self.chosen = on < off
+            log.info(
+                "overlap %s: %.1f ms a frame overlapped, %.1f serially",
+                "on" if self.chosen else "off",
+                on * 1e3,
+                off * 1e3,
+            )
+
+
 @dataclass
 class _Segment:
     """One mosaic under construction: its canvas, its tracker and the frames placed on it."""
@@ -192,6 +241,7 @@ class MosaicBuilder:
         self._compositor = LiveCompositor(compose, self._photometry, correct=self._live_quality)
         self._gain_solution: str | None = "live" if self._live_quality else None
         self._started = time.perf_counter()
+        self.overlap = OverlapTrial(config.pipeline.overlap)
         # failures in a row against a segment that holds only its first frame, and the last
         # of them (re-anchoring: `_reanchor`)
         self._stalled = 0
@@ -215,13 +265,15 @@ class MosaicBuilder:
         return self.register(self.extract(index, image, error))
 
     def stream(self, frames: Iterable[Frame]) -> Iterator[FrameRecord]:
-        """`process` every frame in order, extracting ahead in a background thread if
-        `[pipeline] overlap`; stop iterating to stop (the thread is stopped too)."""
+        """`process` every frame in order, extracting ahead in a background thread where
+        `[pipeline] overlap` says (`OverlapTrial`); stop iterating to stop (the thread is
+        stopped too)."""
         extracted = (self.extract(f.index, f.image, f.error) for f in frames)
-        if self.config.pipeline.overlap:
-            extracted = prefetch(extracted, depth=2)
-        for item in extracted:
-            yield self.register(item)
+        with Lookahead(extracted, depth=2, ahead=self.overlap.ahead()) as items:
+            for item in items:
+                yield self.register(item)
+                self.overlap.tick()
+                items.ahead = self.overlap.ahead()
 
     def extract(self, index: int, image: np.ndarray | None, error: str | None = None) -> Extracted:
         """Preprocess, gate, mask overlays, detect and describe one frame (independent of other
@@ -655,6 +707,7 @@ def build_report(
         if builder._retina_diameter_px is None
         else round(builder._retina_diameter_px, 1),
         "strategy": builder.config.pipeline.strategy,
+        "overlap": builder.overlap.chosen,
         "models": _model_counts(records),
         "tracking": _tracking_summary(builder),
         "on_failure": builder.config.pipeline.on_failure,

@@ -14,17 +14,26 @@ from mosaic.config import Config, with_overrides
 def test_bench_runs_every_variant_on_the_same_video():
     rows = run_bench(["sift"], size=(400, 280), n_frames=14, scales=[0.75, 0.5])
     names = [r.name for r in rows]
-    assert names == ["sift", "sift (scale 0.75)", "sift (scale 0.5)", "sift (no overlap)"]
+    assert names == [
+        "sift",
+        "sift (scale 0.75)",
+        "sift (scale 0.5)",
+        "sift (overlap)",
+        "sift (no overlap)",
+    ]
     for r in rows:
         assert r.frames == 14
         assert r.registered >= 13, r  # an easy synthetic video: (almost) everything registers
         assert r.fps > 0 and r.frame_ms[0] <= r.frame_ms[1]  # median <= p90
         assert r.stage_ms["detect"][0] > 0 and r.stage_ms["compose"][0] > 0
+    # 14 frames are too few for the overlap trial (auto): undecided; the fixed variants as set
+    assert [r.overlap for r in rows] == [None, None, None, True, False]
     table = format_table(rows).splitlines()
     assert table[0].split()[:3] == ["variant", "decode", "preprocess"]
     assert len(table) == 1 + len(rows)
     sift_line = table[1].split()
-    assert sift_line[0] == "sift" and sift_line[-3] == "1.00"  # the reference's own ratio
+    assert sift_line[0] == "sift" and sift_line[-4] == "1.00"  # the reference's own ratio
+    assert [line.split()[-1] for line in table[1:]] == ["-", "-", "-", "on", "off"]
 
 
 def test_bench_cli_json_and_bad_scales():
@@ -47,7 +56,12 @@ def test_bench_cli_json_and_bad_scales():
     )
     assert res.exit_code == 0, res.output
     data = json.loads(res.stdout)
-    assert [r["name"] for r in data["rows"]] == ["sift", "sift (scale 0.5)", "sift (no overlap)"]
+    assert [r["name"] for r in data["rows"]] == [
+        "sift",
+        "sift (scale 0.5)",
+        "sift (overlap)",
+        "sift (no overlap)",
+    ]
     assert data["environment"]["cpu_count"] >= 1
     res = runner.invoke(app, ["bench", "--scales", "2", "--no-rerun"])
     assert res.exit_code == 2 and "--scales" in res.stderr and "Traceback" not in res.output
@@ -71,8 +85,13 @@ def test_bench_measures_glampoints_in_the_other_precision_where_the_cpu_has_bflo
         config = with_overrides(Config(), features={"precision": default})
         rows = run_bench(["glampoints"], size=(240, 160), n_frames=6, config=config)
         names = [r.name for r in rows]
-        assert names == ["glampoints", f"glampoints ({other})", "glampoints (no overlap)"]
+        assert names == [
+            "glampoints",
+            f"glampoints ({other})",
+            "glampoints (overlap)",
+            "glampoints (no overlap)",
+        ]
         assert all(r.frames == 6 and r.registered >= 5 for r in rows), rows
     monkeypatch.setattr(bench, "native_bfloat16", lambda: False)
     names = [r.name for r in run_bench(["glampoints"], (240, 160), 4)]
-    assert names == ["glampoints", "glampoints (no overlap)"]
+    assert names == ["glampoints", "glampoints (overlap)", "glampoints (no overlap)"]

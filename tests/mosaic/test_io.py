@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 from pathlib import Path
 
 import cv2
@@ -12,6 +13,7 @@ import pytest
 
 from mosaic.errors import InputError, OutputError
 from mosaic.io import (
+    Lookahead,
     check_output_path,
     natural_key,
     open_frames,
@@ -265,3 +267,34 @@ def test_sample_image_is_shipped():
     path = sample_image_path()
     assert path.is_file() and path.name == "retina.jpg"
     assert read_image(path).shape == (1411, 1411, 3)
+
+
+def test_lookahead_produces_in_order_ahead_or_not_and_reraises_at_the_item():
+    producers: list[str] = []
+
+    def items():
+        for i in range(8):
+            producers.append(threading.current_thread().name)
+            if i == 6:
+                raise ValueError("frame 6")
+            yield i
+
+    got = []
+    with Lookahead(items(), depth=2) as it:
+        for ahead in (True, True, False, False, True, True):  # switched between items
+            got.append(next(it))
+            it.ahead = ahead
+        with pytest.raises(ValueError, match="frame 6"):
+            next(it)
+    assert got == list(range(6))
+    # ahead: 1-4 by the worker; switched off after 2: 3-4 were already asked for, 5 by the
+    # caller; on again: 6 by the worker, whose exception comes with that item
+    by_worker = [name.startswith("lookahead") for name in producers[:7]]
+    assert by_worker == [False, True, True, True, True, False, True]
+
+
+def test_lookahead_ends_and_stops_its_thread():
+    it = Lookahead(iter(range(3)), depth=2)
+    assert list(it) == [0, 1, 2]
+    it.close()
+    assert not any(t.name.startswith("lookahead") for t in threading.enumerate())

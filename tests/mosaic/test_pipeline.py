@@ -10,7 +10,7 @@ import pytest
 
 from mosaic.config import Config, with_overrides
 from mosaic.io import Frame, open_frames
-from mosaic.pipeline import MosaicBuilder
+from mosaic.pipeline import MosaicBuilder, OverlapTrial
 from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import build_from_folder, corner_error, errors_to_first, similarity
@@ -155,11 +155,14 @@ def test_corrupt_frame_is_skipped_and_counted(video):
 
 
 @pytest.mark.parametrize("on_failure", ["skip", "stop"])
-def test_overlapped_stream_gives_the_serial_result(video, on_failure):
-    """Extracting frame i+1 in a background thread must not change a single number."""
+def test_overlapped_stream_gives_the_serial_result(video, on_failure, monkeypatch):
+    """Extracting frame i+1 in a background thread, always or as the overlap trial switches
+    it on and off, must not change a single number."""
+    monkeypatch.setattr(OverlapTrial, "WARMUP", 1)
+    monkeypatch.setattr(OverlapTrial, "FRAMES", 3)  # auto decides at frame 9, within the video
     folder, _ = video
     results = {}
-    for overlap in (False, True):
+    for overlap in ("off", "on", "auto"):
         builder = MosaicBuilder(_config(on_failure=on_failure, overlap=overlap))
         with open_frames(folder) as frames:
 
@@ -174,20 +177,61 @@ def test_overlapped_stream_gives_the_serial_result(video, on_failure):
                 if builder.stopped:
                     break
         results[overlap] = builder.finish().report
-    serial, overlapped = results[False], results[True]
-    assert (
-        len(overlapped["frames"]) == len(serial["frames"]) == (24 if on_failure == "skip" else 10)
-    )
-    for a, b in zip(serial["frames"], overlapped["frames"], strict=True):
-        assert (a["index"], a["status"], a["n_keypoints"], a["n_inliers"]) == (
-            b["index"],
-            b["status"],
-            b["n_keypoints"],
-            b["n_inliers"],
+    serial = results["off"]
+    assert serial["summary"]["overlap"] is False and results["on"]["summary"]["overlap"] is True
+    if on_failure == "skip":  # all 24 frames: the trial has chosen
+        assert results["auto"]["summary"]["overlap"] in (True, False)
+    for overlapped in (results["on"], results["auto"]):
+        assert (
+            len(overlapped["frames"])
+            == len(serial["frames"])
+            == (24 if on_failure == "skip" else 10)
         )
-        if a["H_to_canvas"] is not None:
-            np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
-    assert overlapped["frames"][9]["status"] == "failed"
+        for a, b in zip(serial["frames"], overlapped["frames"], strict=True):
+            assert (a["index"], a["status"], a["n_keypoints"], a["n_inliers"]) == (
+                b["index"],
+                b["status"],
+                b["n_keypoints"],
+                b["n_inliers"],
+            )
+            if a["H_to_canvas"] is not None:
+                np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
+        assert overlapped["frames"][9]["status"] == "failed"
+
+
+class _Clock:
+    """A fake clock: each frame takes `ms(overlapped)` milliseconds."""
+
+    def __init__(self, trial: OverlapTrial, ms):
+        self.now, self.trial, self.ms = 0.0, trial, ms
+
+    def __call__(self) -> float:
+        return self.now
+
+    def frame(self) -> bool:
+        ahead = self.trial.ahead()
+        self.now += self.ms(ahead) / 1e3
+        self.trial.tick()
+        return ahead
+
+
+@pytest.mark.parametrize(
+    ("overlapped_ms", "serial_ms", "chosen"), [(87, 78, False), (47, 55, True)]
+)
+def test_overlap_trial_keeps_the_faster_way(overlapped_ms, serial_ms, chosen):
+    trial = OverlapTrial("auto")
+    clock = _Clock(trial, lambda ahead: overlapped_ms if ahead else serial_ms)
+    trial._clock = clock
+    trial.tick()  # the clock starts at the first frame
+    ways = [clock.frame() for _ in range(40)]
+    n = OverlapTrial.WARMUP + OverlapTrial.FRAMES
+    assert ways[:n] == [True] * n  # overlapped first, then serial until it has timed both
+    assert ways[n : n + OverlapTrial.FRAMES + 2] == [False] * (OverlapTrial.FRAMES + 2)
+    assert trial.chosen is chosen
+    assert ways[-10:] == [chosen] * 10
+    for mode in ("on", "off"):  # fixed: never timed, never switched
+        fixed = OverlapTrial(mode)
+        assert fixed.chosen is (mode == "on") and fixed.ahead() is (mode == "on")
 
 
 def test_detecting_at_half_scale_still_follows_the_ground_truth(video):
