@@ -1,7 +1,9 @@
 """Brute-force descriptor matching with mutual cross-check (the paper's) and an optional ratio test.
 
 Distances come from one matrix product, so both directions of the cross-check cost one pass.
-Float descriptors use L2 distance; binary (uint8) descriptors use Hamming distance.
+Float descriptors use L2 distance; binary (uint8) descriptors use Hamming distance. The product
+runs in torch, on its thread pool: numpy's BLAS is kept to one thread (`mosaic/__init__.py`),
+and for two ~900 x 128 sets it takes ~2.1 ms there against ~1.2 ms on torch's two threads.
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from mosaic.config import MatchingConfig
 
@@ -25,16 +28,22 @@ class Matches:
         return len(self.idx_a)
 
 
+def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b.T (float32) on torch's thread pool."""
+    a, b = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
+    return (torch.from_numpy(a) @ torch.from_numpy(b).T).numpy()
+
+
 def squared_distance_matrix(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
     """(Na, Nb) squared L2 distances for float descriptors; Hamming distances (not squared)
     for packed binary ones. Either way, smaller is closer: nearest neighbours need no sqrt."""
     if desc_a.dtype == np.uint8:
         a = np.unpackbits(desc_a, axis=1).astype(np.float32)
         b = np.unpackbits(desc_b, axis=1).astype(np.float32)
-        return a.sum(1)[:, None] + b.sum(1)[None, :] - 2.0 * (a @ b.T)
+        return a.sum(1)[:, None] + b.sum(1)[None, :] - 2.0 * _gram(a, b)
     a = desc_a.astype(np.float32, copy=False)
     b = desc_b.astype(np.float32, copy=False)
-    sq = a @ b.T
+    sq = _gram(a, b)
     sq *= -2.0
     sq += (a * a).sum(1)[:, None]
     sq += (b * b).sum(1)[None, :]
@@ -80,7 +89,7 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, config: MatchingCo
     if not binary and config.ratio >= 1.0 and _unit_norm(desc_a) and _unit_norm(desc_b):
         # unit vectors (root-SIFT): nearest = largest dot product, |a - b|^2 = 2 - 2 a.b; one
         # matrix product and no pass to add the norms
-        s = desc_a.astype(np.float32, copy=False) @ desc_b.astype(np.float32, copy=False).T
+        s = _gram(desc_a, desc_b)
         idx_b = s.argmax(axis=1)
         nearest = s[idx_a, idx_b]
         keep = np.ones(len(s), bool)
