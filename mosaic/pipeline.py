@@ -150,12 +150,13 @@ class OverlapTrial:
     overlapping pays only where the machine has a core to spare for it (measured on 2 cores
     without one: the detector's two threads and the registration contend, 87 against 78 ms a
     frame serially; on other machines it gained 15 %). Results are the same either way, only
-    the speed differs. Frame time is the caller's wall time between two frames; the frames
-    right after a switch (still extracted ahead, or not yet) are not timed.
+    the speed differs. Serial first: where overlapping loses, fewer frames pay for the trial.
+    Frame time is the caller's wall time between two frames; the frames right after the
+    switch (not yet extracted ahead) are not timed.
     """
 
     WARMUP = 3  # frames before timing: first frames carry one-off costs (weights, buffers)
-    FRAMES = 10  # timed frames each way
+    FRAMES = 8  # timed frames each way
 
     def __init__(self, mode: str, clock: Callable[[], float] = time.perf_counter) -> None:
         self.mode, self._clock = mode, clock
@@ -168,7 +169,7 @@ class OverlapTrial:
         """Extract ahead while the coming frame registers?"""
         if self.chosen is not None:
             return self.chosen
-        return self._count < self.WARMUP + self.FRAMES  # overlapped first, then serial
+        return self._count >= self.WARMUP + self.FRAMES  # serial first, then overlapped
 
     def tick(self) -> None:
         """A frame was delivered: time it and, when both ways are timed, choose."""
@@ -180,8 +181,8 @@ class OverlapTrial:
         switched = self.WARMUP + self.FRAMES
         timed = self._count > self.WARMUP and self._count not in (switched + 1, switched + 2)
         if timed:
-            self._times[self._count <= switched].append(now - last)
-        if len(self._times[False]) == self.FRAMES:
+            self._times[self._count > switched].append(now - last)
+        if len(self._times[True]) == self.FRAMES:
             on, off = (float(np.median(self._times[k])) for k in (True, False))
             self.chosen = on < off
             log.info(

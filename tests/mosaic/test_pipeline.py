@@ -225,8 +225,8 @@ def test_overlap_trial_keeps_the_faster_way(overlapped_ms, serial_ms, chosen):
     trial.tick()  # the clock starts at the first frame
     ways = [clock.frame() for _ in range(40)]
     n = OverlapTrial.WARMUP + OverlapTrial.FRAMES
-    assert ways[:n] == [True] * n  # overlapped first, then serial until it has timed both
-    assert ways[n : n + OverlapTrial.FRAMES + 2] == [False] * (OverlapTrial.FRAMES + 2)
+    assert ways[:n] == [False] * n  # serial first, then overlapped until it has timed both
+    assert ways[n : n + OverlapTrial.FRAMES + 2] == [True] * (OverlapTrial.FRAMES + 2)
     assert trial.chosen is chosen
     assert ways[-10:] == [chosen] * 10
     for mode in ("on", "off"):  # fixed: never timed, never switched
