@@ -193,6 +193,14 @@ class GlamPointsDetector:
             config.descriptor_size_px / config.extra_scale if config.extra_scale else 0
         )
 
+    @property
+    def takes_every_core(self) -> bool:
+        """The network runs on torch's CPU threads, more than one: registering meanwhile
+        would compete with it for the cores (`pipeline.Turns`)."""
+        import torch
+
+        return self._model.device.type == "cpu" and torch.get_num_threads() > 1
+
     def detect(self, gray: np.ndarray, mask: np.ndarray) -> tuple[Keypoints, np.ndarray]:
         """Keypoints of the frame (size 0: the configured descriptor size); with `extra_scale`,
         plus those of a smaller copy, in frame pixels and described on a larger support, so

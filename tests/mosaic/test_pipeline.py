@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import threading
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from mosaic.config import Config, with_overrides
-from mosaic.io import Frame, open_frames
-from mosaic.pipeline import MosaicBuilder, OverlapTrial
+from mosaic.io import Frame, Lookahead, open_frames
+from mosaic.pipeline import MosaicBuilder, OverlapTrial, Turns
 from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import build_from_folder, corner_error, errors_to_first, similarity
@@ -197,6 +200,26 @@ def test_overlapped_stream_gives_the_serial_result(video, on_failure, monkeypatc
             if a["H_to_canvas"] is not None:
                 np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
         assert overlapped["frames"][9]["status"] == "failed"
+
+
+def test_glampoints_taking_turns_with_the_registration_gives_the_serial_result(video):
+    """GLAMpoints on the CPU: the network and the registration take turns (`Turns`) when
+    extracting ahead; the numbers stay those of the serial run."""
+    folder, _ = video
+    reports, turns = {}, {}
+    for overlap in ("off", "on"):
+        config = with_overrides(Config(), pipeline={"overlap": overlap})
+        builder = MosaicBuilder(config)
+        with open_frames(folder) as frames:
+            for _ in builder.stream(frames):
+                pass
+        reports[overlap], turns[overlap] = builder.finish().report, builder._turns.on
+    assert turns["on"] == (torch.get_num_threads() > 1) and turns["off"] == turns["on"]
+    serial, overlapped = reports["off"]["frames"], reports["on"]["frames"]
+    assert [f["status"] for f in overlapped] == [f["status"] for f in serial] == ["registered"] * 24
+    for a, b in zip(serial, overlapped, strict=True):
+        assert a["n_inliers"] == b["n_inliers"]
+        np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
 
 
 class _Clock:
@@ -438,3 +461,61 @@ def test_viewer_sees_keypoints_and_matches_in_the_pixels_of_the_frame_it_shows(v
     )
     mapped = cv2.perspectiveTransform(cur[None].astype(np.float64), H_cur_to_ref)[0]
     assert np.median(np.linalg.norm(mapped - ref, axis=1)) < 2.0  # ~1 px at half size, doubled
+
+
+def _turn_taking(stop_after: int | None = None, skipped: frozenset[int] = frozenset()):
+    """Extract 12 fake items ahead and register them with `Turns`: (events, busy overlaps)."""
+    turns, events, clash = Turns(on=True), [], []
+    busy = {"detect": False, "register": False}
+
+    def extract(k: int) -> int:
+        if k not in skipped:  # a skipped frame counts as detected without the network
+            turns.before_detect()
+            busy["detect"] = True
+            clash.append(busy["register"])
+            time.sleep(0.003)
+            events.append(("detect", k))
+            busy["detect"] = False
+        turns.detected()
+        time.sleep(0.002)  # describing: beside a registration
+        return k
+
+    def consume() -> None:
+        items = (extract(k) for k in range(12))
+        with Lookahead(turns.ended_after(items), depth=2) as it, turns:
+            for j, k in enumerate(it):
+                assert j == k
+                turns.before_register(j, it.ahead)
+                busy["register"] = True
+                clash.append(busy["detect"])
+                events.append(("register", j))
+                time.sleep(0.003)
+                busy["register"] = False
+                turns.registered()
+                if stop_after is not None and j == stop_after:
+                    return
+
+    runner = threading.Thread(target=consume)
+    runner.start()
+    runner.join(timeout=10)
+    assert not runner.is_alive(), "turn taking deadlocked"
+    return events, clash
+
+
+def test_turns_keep_the_network_and_the_registration_apart():
+    events, clash = _turn_taking(skipped=frozenset({4, 5}))
+    assert not any(clash)  # never the network while a frame registers, nor the reverse
+    order = {event: i for i, event in enumerate(events)}
+    detected = [k for kind, k in events if kind == "detect"]
+    assert detected == [k for k in range(12) if k not in (4, 5)]
+    for j in range(11):  # frame j registers once frame j + 1 is detected (or skipped) ...
+        if j + 1 not in (4, 5):
+            assert order["detect", j + 1] < order["register", j]
+    for k in range(2, 12):  # ... and frame k's network waits for frame k - 2's registration
+        if k not in (4, 5):
+            assert order["register", k - 2] < order["detect", k]
+
+
+def test_turns_let_a_stream_stop_early_without_waiting():
+    events, _ = _turn_taking(stop_after=3)
+    assert ("register", 3) in events and ("register", 4) not in events
