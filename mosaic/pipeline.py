@@ -149,10 +149,11 @@ class OverlapTrial:
     """Whether to extract the next frame while this one registers (`[pipeline] overlap`).
 
     "on" / "off" fix it. "auto" times both on the stream's first frames and keeps the faster:
-    overlapping pays only where the machine has a core to spare for it (measured on 2 cores
-    without one: the detector's two threads and the registration contend, 87 against 78 ms a
-    frame serially; on other machines it gained 15 %). Results are the same either way, only
-    the speed differs. Serial first: where overlapping loses, fewer frames pay for the trial.
+    overlapping pays only where the machine has a core to spare for it (measured on 2 cores,
+    GLAMpoints before `Turns`: its two threads and the registration contended, 87 against 78
+    ms a frame serially; with them 72-76; SIFT gained 40-60 %). Results are the same either
+    way, only the speed differs. Serial first: where overlapping loses, fewer frames pay for
+    the trial.
     Frame time is the caller's wall time between two frames; the frames right after the
     switch (not yet extracted ahead) are not timed.
     """
@@ -353,8 +354,7 @@ class MosaicBuilder:
         `[pipeline] overlap` says (`OverlapTrial`); stop iterating to stop (the thread is
         stopped too)."""
         extracted = (self.extract(f.index, f.image, f.error) for f in frames)
-        multithreaded = getattr(self.extractor.detector, "takes_every_core", False)
-        self._turns = turns = Turns(on=multithreaded)
+        self._turns = turns = Turns(on=self.extractor.detector.takes_every_core)
         ahead = self.overlap.ahead()
         with Lookahead(turns.ended_after(extracted), depth=2, ahead=ahead) as items, turns:
             for i, item in enumerate(items):
