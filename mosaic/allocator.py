@@ -4,10 +4,12 @@ back to the system and faults them in again, zeroed, on the next frame.
 Every frame allocates and frees the same few large arrays: the UNet's activations (a 660x352
 frame's full-resolution level is ~15 MB a tensor), the descriptors' tables, the canvas tiles.
 glibc serves such blocks by `mmap` (above its mmap threshold) or trims them off the heap top
-(above its trim threshold), so each frame page-faults them in anew: measured ~5,500 minor faults
-and ~9 ms a frame in the detector on the benchmark video, ~400 faults with the thresholds
-raised. Raising them keeps the freed memory in the process for the next frame; peak memory is
-the same (the same buffers, reused), memory is just not returned between frames.
+(above its trim threshold), so each frame page-faults them in anew until glibc's dynamic
+thresholds have risen far enough, which takes a few hundred frames: measured ~5,500 minor
+faults and ~9 ms a frame in the detector on the 80-frame benchmark video, ~400 faults with the
+thresholds raised. Raising them keeps the freed memory in the process for the next frame from
+the start; memory is not returned between frames (a 2000-frame build's peak: 845 against
+778 MB; its streaming rate, glibc's warm-up long over, is the same).
 
 Process-wide and idempotent; a no-op off glibc, and where the user set either threshold
 (MALLOC_MMAP_THRESHOLD_, MALLOC_TRIM_THRESHOLD_ or GLIBC_TUNABLES), which is left alone.
