@@ -154,40 +154,49 @@ class OverlapTrial:
     ms a frame serially; with them 72-76; SIFT gained 40-60 %). Results are the same either
     way, only the speed differs. Serial first: where overlapping loses, fewer frames pay for
     the trial.
-    Frame time is the caller's wall time between two frames; the frames right after the
-    switch (not yet extracted ahead) are not timed.
+    Frame time is the caller's wall time between two frames; the frames right after a switch
+    are not timed. Trials run again every `RETRIAL` frames.
     """
 
     WARMUP = 3  # frames before timing: first frames carry one-off costs (weights, buffers)
     FRAMES = 12  # timed frames each way (the two ways may differ by only ~5 %)
+    RETRIAL = 500  # frames between two trials: the machine's load changes, a close call errs
 
     def __init__(self, mode: str, clock: Callable[[], float] = time.perf_counter) -> None:
         self.mode, self._clock = mode, clock
         self.chosen: bool | None = None if mode == "auto" else mode == "on"
+        self._frames = 0  # frames delivered after the first
+        self._trial_start: int | None = 0 if mode == "auto" else None  # of the running trial
+        self._next_trial = 0
         self._times: dict[bool, list[float]] = {True: [], False: []}
-        self._count = 0
         self._last: float | None = None
 
     def ahead(self) -> bool:
         """Extract ahead while the coming frame registers?"""
-        if self.chosen is not None:
-            return self.chosen
-        return self._count >= self.WARMUP + self.FRAMES  # serial first, then overlapped
+        if self._trial_start is None:
+            return bool(self.chosen)
+        # serial first, then overlapped
+        return self._frames - self._trial_start >= self.WARMUP + self.FRAMES
 
     def tick(self) -> None:
-        """A frame was delivered: time it and, when both ways are timed, choose."""
+        """A frame was delivered: time it during a trial and, when both ways are timed,
+        choose; start the next trial `RETRIAL` frames later."""
         now = self._clock()
         last, self._last = self._last, now
-        if self.chosen is not None or last is None:
+        if self.mode != "auto" or last is None:
             return
-        self._count += 1
-        switched = self.WARMUP + self.FRAMES
-        timed = self._count > self.WARMUP and self._count not in (switched + 1, switched + 2)
-        if timed:
-            self._times[self._count > switched].append(now - last)
+        self._frames += 1
+        if self._trial_start is None:
+            if self._frames >= self._next_trial:
+                self._trial_start, self._times = self._frames, {True: [], False: []}
+            return
+        at, switched = self._frames - self._trial_start, self.WARMUP + self.FRAMES
+        if at > self.WARMUP and at not in (switched + 1, switched + 2):
+            self._times[at > switched].append(now - last)
         if len(self._times[True]) == self.FRAMES:
             on, off = (float(np.median(self._times[k])) for k in (True, False))
             self.chosen = on < off
+            self._trial_start, self._next_trial = None, self._frames + self.RETRIAL
             log.info(
                 "overlap %s: %.1f ms a frame overlapped, %.1f serially",
                 "on" if self.chosen else "off",

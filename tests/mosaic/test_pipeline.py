@@ -252,6 +252,20 @@ def test_overlap_trial_keeps_the_faster_way(overlapped_ms, serial_ms, chosen):
     assert ways[n : n + OverlapTrial.FRAMES + 2] == [True] * (OverlapTrial.FRAMES + 2)
     assert trial.chosen is chosen
     assert ways[-10:] == [chosen] * 10
+
+
+def test_overlap_trial_runs_again_and_follows_a_change(monkeypatch):
+    monkeypatch.setattr(OverlapTrial, "RETRIAL", 60)
+    trial = OverlapTrial("auto")
+    speeds = {"overlapped": 87, "serial": 78}  # ms a frame
+    clock = _Clock(trial, lambda ahead: speeds["overlapped" if ahead else "serial"])
+    trial._clock = clock
+    trial.tick()
+    ways = [clock.frame() for _ in range(40)]
+    assert trial.chosen is False and ways[-5:] == [False] * 5
+    speeds["overlapped"] = 60  # the machine's other load went away
+    ways = [clock.frame() for _ in range(90)]  # the next trial: frames 89-118
+    assert trial.chosen is True and ways[-5:] == [True] * 5
     for mode in ("on", "off"):  # fixed: never timed, never switched
         fixed = OverlapTrial(mode)
         assert fixed.chosen is (mode == "on") and fixed.ahead() is (mode == "on")
