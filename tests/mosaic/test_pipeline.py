@@ -163,6 +163,7 @@ def test_overlapped_stream_gives_the_serial_result(video, on_failure, monkeypatc
     it on and off, must not change a single number."""
     monkeypatch.setattr(OverlapTrial, "WARMUP", 1)
     monkeypatch.setattr(OverlapTrial, "FRAMES", 3)  # auto decides at frame 9, within the video
+    monkeypatch.setattr(OverlapTrial, "RETRIAL", 3)  # and tries again: switches back and forth
     folder, _ = video
     results = {}
     for overlap in ("off", "on", "auto"):
@@ -202,12 +203,15 @@ def test_overlapped_stream_gives_the_serial_result(video, on_failure, monkeypatc
         assert overlapped["frames"][9]["status"] == "failed"
 
 
-def test_glampoints_taking_turns_with_the_registration_gives_the_serial_result(video):
+def test_glampoints_taking_turns_with_the_registration_gives_the_serial_result(video, monkeypatch):
     """GLAMpoints on the CPU: the network and the registration take turns (`Turns`) when
-    extracting ahead; the numbers stay those of the serial run."""
+    extracting ahead, always or as the trial switches; the numbers stay those of the serial
+    run."""
+    for name, value in (("WARMUP", 1), ("FRAMES", 3), ("RETRIAL", 3)):
+        monkeypatch.setattr(OverlapTrial, name, value)
     folder, _ = video
     reports, turns = {}, {}
-    for overlap in ("off", "on"):
+    for overlap in ("off", "on", "auto"):
         config = with_overrides(Config(), pipeline={"overlap": overlap})
         builder = MosaicBuilder(config)
         with open_frames(folder) as frames:
@@ -215,11 +219,13 @@ def test_glampoints_taking_turns_with_the_registration_gives_the_serial_result(v
                 pass
         reports[overlap], turns[overlap] = builder.finish().report, builder._turns.on
     assert turns["on"] == (torch.get_num_threads() > 1) and turns["off"] == turns["on"]
-    serial, overlapped = reports["off"]["frames"], reports["on"]["frames"]
-    assert [f["status"] for f in overlapped] == [f["status"] for f in serial] == ["registered"] * 24
-    for a, b in zip(serial, overlapped, strict=True):
-        assert a["n_inliers"] == b["n_inliers"]
-        np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
+    serial = reports["off"]["frames"]
+    assert [f["status"] for f in serial] == ["registered"] * 24
+    for overlapped in (reports["on"]["frames"], reports["auto"]["frames"]):
+        assert [f["status"] for f in overlapped] == ["registered"] * 24
+        for a, b in zip(serial, overlapped, strict=True):
+            assert a["n_inliers"] == b["n_inliers"]
+            np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
 
 
 class _Clock:
