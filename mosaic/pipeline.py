@@ -5,11 +5,12 @@ each frame's quality score against it).
 
 `MosaicBuilder.process` takes one decoded frame at a time (frames are streamed, never stored);
 it is `extract` (preprocess → describe: needs no other frame) then `register` (track → compose,
-in frame order). `stream` runs them over a video with, when `[pipeline] overlap` is on, the
-extraction of the next frames in a background thread while the current one is registered
-(OpenCV and torch release the GIL). `MosaicBuilder.finish` renders the mosaic segment(s) and the
-report. Reading files, progress bars and the viewer stay outside: the viewer is injected and is
-a no-op unless the user turns it on.
+in frame order). `stream` runs them over a video with, when `[pipeline] overlap` is on (or
+`auto` measured it faster: `OverlapTrial`), the extraction of the next frames in a background
+thread while the current one is registered (OpenCV and torch release the GIL), a network on
+every core taking turns with the registration (`Turns`). `MosaicBuilder.finish` renders the
+mosaic segment(s) and the report. Reading files, progress bars and the viewer stay outside: the
+viewer is injected and is a no-op unless the user turns it on.
 """
 
 from __future__ import annotations
