@@ -413,7 +413,9 @@ def synth(
         bool,
         typer.Option(
             help="Like real magnified fundus video: 25-45 % of the source's view per frame, "
-            "its rim at times, strong vignetting, gain/gamma changes, blur/defocus/glare bursts."
+            "its rim at times, strong vignetting, gain/gamma changes, blur/defocus/glare bursts. "
+            "Curved pairs: each photograph as from its own visit (focus, illumination, gamma, "
+            "colour, lesions, noise, JPEG quality)."
         ),
     ] = False,
     curved_pairs: Annotated[
@@ -435,7 +437,7 @@ def synth(
         if hard and realistic:
             raise InputError("choose one of --hard and --realistic")
         if curved_pairs:
-            _curved_pairs(image or sample_image_path(), output, curved_pairs, seed, size)
+            _curved_pairs(image or sample_image_path(), output, curved_pairs, seed, size, realistic)
             return
         make = SynthParams.hard if hard else SynthParams.realistic if realistic else SynthParams
         params = make(
@@ -446,7 +448,9 @@ def synth(
         typer.echo(f"video: {output}\nground truth: {gt}\nsource: {source}")
 
 
-def _curved_pairs(image: Path, output: Path, n_pairs: int, seed: int, size: str | None) -> None:
+def _curved_pairs(
+    image: Path, output: Path, n_pairs: int, seed: int, size: str | None, visits: bool
+) -> None:
     """`synth --curved-pairs`: the pairs in FIRE's layout (`mosaic.curved.write_fire_folder`)."""
     from mosaic.curved import write_fire_folder
 
@@ -454,7 +458,7 @@ def _curved_pairs(image: Path, output: Path, n_pairs: int, seed: int, size: str 
     if width != height:
         raise InputError(f"curved pairs are square: --size {size} is not")
     sources = [pick_source(image, seed + i) for i in range(n_pairs)]
-    write_fire_folder(sources, output, n_pairs, seed=seed, size=width)
+    write_fire_folder(sources, output, n_pairs, seed=seed, size=width, visits=visits)
     typer.echo(
         f"{n_pairs} curved pairs: {output} (FIRE layout; {output / 'pairs.csv'} for "
         f"mosaic register --pairs)\nsources: {', '.join(sorted({s.name for s in sources}))}"

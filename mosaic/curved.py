@@ -145,6 +145,40 @@ def _render(
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
+def _visit(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """`image` as another visit would show it: defocus, an off-centre illumination, gamma and
+    colour balance, a few lesions come or gone, more sensor noise. A photograph of the same
+    eye months later differs in all of these; the geometry is untouched."""
+    n = image.shape[0]
+    px = n / 2912  # sizes below are for a 2912 px photograph
+    out = image.astype(np.float32)
+    aperture = image.max(axis=2) > 0
+    sigma = rng.uniform(0.0, 2.5) * px
+    if sigma > 0.3:
+        out = cv2.GaussianBlur(out, (0, 0), sigma)
+    for _ in range(int(rng.integers(0, 7))):  # lesions: dark red haemorrhages, yellow exudates
+        centre = rng.uniform(0.25, 0.75, 2) * n
+        radius = rng.uniform(8, 40) * px
+        colour = np.array([20.0, 25.0, 90.0]) if rng.random() < 0.5 else np.array([120, 230, 240.0])
+        half = int(2 * radius) + 2
+        x0, y0 = (int(c) - half for c in centre)
+        box = out[y0 : y0 + 2 * half + 1, x0 : x0 + 2 * half + 1]
+        yy, xx = np.mgrid[y0 : y0 + box.shape[0], x0 : x0 + box.shape[1]]
+        spot = 1 / (1 + np.exp((np.hypot(xx - centre[0], yy - centre[1]) - radius) / (radius / 6)))
+        spot = 0.8 * spot[..., None].astype(np.float32)
+        box[:] = box * (1 - spot) + colour * spot
+    yy, xx = (np.mgrid[0:n, 0:n].astype(np.float32) + 0.5) / n
+    cx, cy = rng.uniform(0.2, 0.8, 2)
+    width = rng.uniform(0.25, 0.6)
+    light = 1 + rng.uniform(-0.35, 0.5) * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / width**2)
+    balance = rng.uniform(0.85, 1.15, 3).astype(np.float32)
+    gamma = rng.uniform(0.75, 1.35)
+    out = 255 * (np.clip(out * light[..., None] * balance, 0, 255) / 255) ** gamma
+    out += rng.normal(0, rng.uniform(1.0, 5.0), out.shape).astype(np.float32)
+    out[~aperture] = 0
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
 def curved_pair(
     source: np.ndarray,
     seed: int = 0,
@@ -152,11 +186,14 @@ def curved_pair(
     turn_deg: float = 16.0,
     n_points: int = 10,
     pupil_distance: float = 1.0,
+    visits: bool = False,
 ) -> CurvedPair:
     """A pair of `size` px photographs of the retina of `source` (a fundus image) taken from two
     camera poses `seed` draws: eye turns of up to `turn_deg` each way (overlap shrinks as it
     grows), rolls of up to 10 degrees, distances from the eye's centre around `pupil_distance`
-    (1: at the pupil). `n_points` control points lie where both views see the retina."""
+    (1: at the pupil). `n_points` control points lie where both views see the retina.
+    `visits`: each photograph also as from its own visit (`_visit`: focus, illumination,
+    gamma, colour, lesions, noise), as in follow-up pairs."""
     rng = np.random.default_rng(seed)
     disc = estimate_fov_disc(source)
     src_cam = _camera(np.zeros(2), 0.0, pupil_distance, 2 * int(disc[2]) + 1, HALF_FIELD_DEG)
@@ -168,6 +205,9 @@ def curved_pair(
         cams.append(_camera(turn, roll, distance, size, HALF_FIELD_DEG))
     fixed = _render(source, disc, cams[0], src_cam, rng)
     moving = _render(source, disc, cams[1], src_cam, rng)
+    if visits:  # its own generator: the geometry and the plain pairs stay as they were
+        visit_rng = np.random.default_rng([seed, 1])
+        fixed, moving = _visit(fixed, visit_rng), _visit(moving, visit_rng)
     pair = CurvedPair(fixed, moving, cams[0], cams[1], np.zeros((0, 4)))
     return CurvedPair(
         fixed, moving, cams[0], cams[1], _control_points(pair, src_cam, disc, rng, n_points)
@@ -212,9 +252,11 @@ def write_fire_folder(
     seed: int = 0,
     size: int = 2048,
     turn_deg: float = 16.0,
+    visits: bool = False,
 ) -> Path:
     """Write `n_pairs` curved pairs (sources taken in turn) in the FIRE layout under `out`, and
-    `pairs.csv` (fixed,moving) for `mosaic register --pairs`; returns `out`."""
+    `pairs.csv` (fixed,moving) for `mosaic register --pairs`; returns `out`. `visits`: as in
+    `curved_pair`, and JPEG quality 70-95 instead of 95."""
     images, truth = out / "Images", out / "Ground Truth"
     images.mkdir(parents=True, exist_ok=True)
     truth.mkdir(parents=True, exist_ok=True)
@@ -223,10 +265,12 @@ def write_fire_folder(
         source = cv2.imread(str(sources[i % len(sources)]), cv2.IMREAD_COLOR)
         if source is None:
             raise InputError(f"cannot read {sources[i % len(sources)]}")
-        pair = curved_pair(source, seed=seed + i, size=size, turn_deg=turn_deg)
+        pair = curved_pair(source, seed=seed + i, size=size, turn_deg=turn_deg, visits=visits)
+        quality = np.random.default_rng([seed + i, 2]).integers(70, 96, 2) if visits else (95, 95)
         name = f"C{i + 1:02d}"
-        cv2.imwrite(str(images / f"{name}_1.jpg"), pair.fixed, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        cv2.imwrite(str(images / f"{name}_2.jpg"), pair.moving, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        for k, image in enumerate((pair.fixed, pair.moving)):
+            path = images / f"{name}_{k + 1}.jpg"
+            cv2.imwrite(str(path), image, [cv2.IMWRITE_JPEG_QUALITY, int(quality[k])])
         np.savetxt(truth / f"control_points_{name}_1_2.txt", pair.control_points, fmt="%.3f")
         lines.append(f"Images/{name}_1.jpg,Images/{name}_2.jpg")
     (out / "pairs.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")

@@ -893,8 +893,8 @@ def register_pair(
     H = np.linalg.inv(S_fixed) @ reg.H_cur_to_prev @ S_moving
     reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])
     pair_model = model if model in ("quadratic", "auto") else "homography"
-    if reg.model != "homography" and model != "quadratic":
-        return reg  # a simpler model was chosen or asked for: nothing to refine it towards
+    if reg.model != "homography" and model not in ("quadratic", "auto"):
+        return reg  # a simpler model was asked for: nothing to refine it towards
     xy_full = (xy_moving[reg.inliers] + 0.5) / S_moving[0, 0] - 0.5
     xy_target = (features_fixed.xy[matches.idx_a][reg.inliers] + 0.5) / S_fixed[0, 0] - 0.5
     fit, levels_done = fit_pair(

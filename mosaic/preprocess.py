@@ -95,14 +95,15 @@ def field_of_view_mask(gray: np.ndarray, threshold: int, erode_px: int) -> np.nd
 FOV_DISC_THRESHOLD = 15  # grey level separating a fundus image's black border from the retina
 
 
-def fov_distance(source: np.ndarray) -> np.ndarray:
+def fov_distance(source: np.ndarray, threshold: float = FOV_DISC_THRESHOLD) -> np.ndarray:
     """Distance (px) of every pixel to the black border of a fundus image's field of view.
 
-    The border is found by thresholding; holes (dark lesions, vessels) are filled. The map is
-    padded by one pixel (index [y + 1, x + 1]) so the image border also counts as outside.
+    The border is found by thresholding at `threshold`; holes (dark lesions, vessels) are
+    filled. The map is padded by one pixel (index [y + 1, x + 1]) so the image border also
+    counts as outside.
     """
     gray = source if source.ndim == 2 else cv2.cvtColor(source, cv2.COLOR_BGR2GRAY)
-    mask = (cv2.GaussianBlur(gray, (0, 0), 2.0) > FOV_DISC_THRESHOLD).astype(np.uint8)
+    mask = (cv2.GaussianBlur(gray, (0, 0), 2.0) > threshold).astype(np.uint8)
     _, labels, stats, _ = cv2.connectedComponentsWithStats(1 - mask, connectivity=4)
     h, w = mask.shape
     x0, y0 = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
@@ -132,6 +133,8 @@ def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> 
 
 
 DISC_ANALYSIS_SIDE_PX = 512  # the disc is estimated on a copy of at most this longer side
+DISC_CORNER_SIDE = 1 / 16  # the corner squares whose level is the black border's, in image sides
+DISC_ABOVE_BORDER = 4.0  # grey levels above the border's that count as retina
 DISC_MIN_ARC = 0.5  # share of the circle's directions the view's dark border must show
 DISC_MAX_RESIDUAL = 0.03  # median distance of the border to the fitted circle, in radii
 
@@ -151,7 +154,7 @@ def retina_disc(image: np.ndarray) -> tuple[float, float, float] | None:
     small = image
     if s < 1.0:
         small = cv2.resize(image, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
-    mask = (fov_distance(small)[1:-1, 1:-1] > 0).astype(np.uint8)
+    mask = (fov_distance(small, _border_threshold(small))[1:-1, 1:-1] > 0).astype(np.uint8)
     edge = mask - cv2.erode(mask, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
     ys, xs = np.nonzero(edge)
     if len(xs) < 20:
@@ -174,6 +177,25 @@ def retina_disc(image: np.ndarray) -> tuple[float, float, float] | None:
     ):
         return None
     return (cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5, r / s
+
+
+def _border_threshold(image: np.ndarray) -> float:
+    """The grey level between a fundus photograph's black border and its retina: halfway
+    between the level of the image's corners (outside the field of view of a whole retina) and
+    the retina's darkest (its 5th percentile), at most FOV_DISC_THRESHOLD; a dark photograph's
+    retina, only a few grey levels above its border towards the rim, then still counts."""
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    gray = cv2.GaussianBlur(gray, (0, 0), 2.0)
+    k = max(int(min(gray.shape) * DISC_CORNER_SIDE), 1)
+    corners = np.concatenate(
+        [c.ravel() for c in (gray[:k, :k], gray[:k, -k:], gray[-k:, :k], gray[-k:, -k:])]
+    )
+    border = float(np.percentile(corners, 95))
+    retina = gray[gray > border + DISC_ABOVE_BORDER]
+    if retina.size == 0:
+        return FOV_DISC_THRESHOLD
+    middle = (border + float(np.percentile(retina, 5))) / 2
+    return min(FOV_DISC_THRESHOLD, max(DARK_VIEW_FLOOR, middle))
 
 
 def working_scale(image: np.ndarray, max_side_px: int, fov_diameter_px: int = 0) -> float:

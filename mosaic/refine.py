@@ -35,6 +35,7 @@ SEARCH_PX = 5  # searched this far around the prediction at each level
 MIN_NCC = 0.6  # a weaker correlation peak leaves the match out of the fit
 THRESHOLD_LEVEL_PX = 2.0  # robust fit: residuals beyond this (level pixels) are outliers
 MIN_POINTS = 12
+LEVEL_KEEPS = 0.5  # a level that re-localises fewer than this share of the last one's inliers stops
 
 Mapping = Callable[[np.ndarray], np.ndarray]
 
@@ -188,16 +189,11 @@ def relocalise(
     pm = _to_level(xy_moving, scale)
     src = pm[:, None, :] + np.einsum("nij,mj->nmi", J_inv, u)
     side = 2 * k + 1
-    map_m = src.reshape(n * side, side, 2).astype(np.float32)
-    templates = cv2.remap(moving, map_m[..., 0], map_m[..., 1], cv2.INTER_LINEAR).reshape(
-        n, side, side
-    )
+    templates = _tiles(moving, src.reshape(n, side, side, 2))
     ts = np.arange(-k - r, k + r + 1, dtype=np.float64)
     wv = np.stack(np.meshgrid(ts, ts), -1)
     pf = _to_level(pred, scale)
-    wside = len(ts)
-    win = (pf[:, None, None, :] + wv[None]).reshape(n * wside, wside, 2).astype(np.float32)
-    windows = cv2.remap(fixed, win[..., 0], win[..., 1], cv2.INTER_LINEAR).reshape(n, wside, wside)
+    windows = _tiles(fixed, pf[:, None, None, :] + wv[None])
     out = np.full((n, 2), np.nan)
     peaks = np.zeros(n)
     for i in np.flatnonzero(good & np.isfinite(pf).all(1)):
@@ -212,6 +208,20 @@ def relocalise(
         dy = _parabola(res[iy - 1, ix], res[iy, ix], res[iy + 1, ix])
         out[i] = pred[i] + (np.array([ix + dx, iy + dy]) - r) / scale
     return out, peaks
+
+
+def _tiles(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """`image` sampled (bilinear) at (N, h, w, 2) positions: N tiles of h x w. One `cv2.remap`
+    per group of tiles stacked in a column (it takes fewer than SHRT_MAX rows)."""
+    n, h, w = xy.shape[:3]
+    out = np.empty((n, h, w), np.float32)
+    per = max((32767 - 1) // h, 1)
+    for i in range(0, n, per):
+        m = xy[i : i + per].reshape(-1, w, 2).astype(np.float32)
+        out[i : i + per] = cv2.remap(image, m[..., 0], m[..., 1], cv2.INTER_LINEAR).reshape(
+            -1, h, w
+        )
+    return out
 
 
 def _parabola(a: float, b: float, c: float) -> float:
@@ -233,7 +243,8 @@ def refine_pair(
     points `xy_moving` through `levels` levels from `start_scale` (the working scale) up to the
     full resolution; `model` as in `registration.robust_fit` (the quadratic predicts the next
     level once chosen; `homography_threshold_px` bounds the homography's residuals, full
-    resolution). None when too few matches survive."""
+    resolution). Stops at the first level that loses most of the matches (`LEVEL_KEEPS`); None
+    when the first one does."""
     g_fixed, g_moving = _grey(fixed), _grey(moving)
     shape = moving.shape[:2]
     fit: RobustFit | None = None
@@ -244,12 +255,15 @@ def refine_pair(
             return apply_quadratic(fit.Q, q)
         return apply_homography(H, q)
 
-    xy_f = ncc = None
-    for scale in level_scales(start_scale, levels):
+    done: Refined | None = None
+    for level, scale in enumerate(level_scales(start_scale, levels), 1):
         xy_f, ncc = relocalise(g_fixed, g_moving, xy_moving, predict, scale)
         ok = np.isfinite(xy_f).all(1) & (ncc >= MIN_NCC)
-        if ok.sum() < MIN_POINTS:
-            return None
+        kept = 0 if done is None else int(done.fit.inliers.sum())
+        if ok.sum() < max(MIN_POINTS, LEVEL_KEEPS * kept):
+            # The photographs hold no more detail here (defocus, noise, upsampled): the
+            # previous level's answer stands rather than one fitted to a few matches.
+            break
         fit = robust_fit(
             xy_moving[ok],
             xy_f[ok],
@@ -264,9 +278,8 @@ def refine_pair(
         inliers = np.zeros(len(xy_moving), bool)
         inliers[np.flatnonzero(ok)[fit.inliers]] = True
         fit = RobustFit(fit.H, fit.Q, inliers, fit.model, fit.rms_px)
-    if fit is None or xy_f is None or ncc is None:
-        return None
-    return Refined(fit, xy_moving, xy_f, ncc, len(level_scales(start_scale, levels)))
+        done = Refined(fit, xy_moving, xy_f, ncc, level)
+    return done
 
 
 def fit_pair(

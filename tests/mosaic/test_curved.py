@@ -48,3 +48,25 @@ def test_fire_folder_loads_as_fire(tmp_path, source):
     pair = next(iter(data))
     assert pair.image1.shape == (256, 256, 3) and pair.control_points.shape == (10, 4)
     assert (out / "pairs.csv").read_text().splitlines()[0] == "fixed,moving"
+
+
+def test_visits_change_the_photographs_not_the_geometry(source):
+    """A follow-up pair (`visits`): the same cameras and control points as the plain pair;
+    each photograph differs from its plain rendering (focus, light, gamma, colour, noise) but
+    still shows the same retina there, and the two differ from each other in brightness."""
+    plain = curved_pair(source, seed=4, size=384)
+    visit = curved_pair(source, seed=4, size=384, visits=True)
+    np.testing.assert_array_equal(visit.control_points, plain.control_points)
+    for a, b in ((plain.fixed, visit.fixed), (plain.moving, visit.moving)):
+        inside = a[..., 1] > 20
+        assert np.abs(a[..., 1][inside].astype(float) - b[..., 1][inside]).mean() > 5
+        r = np.corrcoef(
+            cv2.GaussianBlur(a[..., 1], (0, 0), 3)[inside],
+            cv2.GaussianBlur(b[..., 1], (0, 0), 3)[inside],
+        )[0, 1]
+        assert r > 0.5
+    level = [
+        v[..., 1][v[..., 1] > 20].mean() / p[..., 1][p[..., 1] > 20].mean()
+        for v, p in ((visit.fixed, plain.fixed), (visit.moving, plain.moving))
+    ]
+    assert abs(level[0] - level[1]) > 0.02

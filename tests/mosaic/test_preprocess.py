@@ -182,6 +182,22 @@ def test_retina_disc_recovers_the_field_of_view_disc_also_clipped_at_top_and_bot
         assert abs(disc[2] - r) < 0.01 * r
 
 
+def test_retina_disc_of_a_dark_photograph_whose_rim_is_a_few_grey_levels_above_black():
+    """An under-exposed photograph (strong vignetting, its rim at grey 7-12 over a black border
+    with noise): the disc is still the whole retina, not the brighter middle."""
+    h = w = 1000
+    img = _fundus(h, w, 500.0, 500.0, 460.0).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w]
+    rho = np.hypot(xx - 500, yy - 500) / 460
+    dark = img * 0.3 * (1 - 0.75 * np.clip(rho, 0, 1) ** 2)[..., None]
+    dark += np.random.default_rng(1).normal(0, 1.5, dark.shape)
+    dark = np.clip(dark, 0, 255).astype(np.uint8)
+    assert np.median(dark[..., 1][(rho > 0.95) & (rho < 1)]) < 12
+    disc = retina_disc(dark)
+    assert disc is not None
+    assert abs(disc[2] - 460) < 0.02 * 460 and abs(disc[0] - 500) < 0.01 * 460
+
+
 def test_retina_disc_is_none_for_frames_bright_to_their_edges_or_showing_a_bit_of_rim():
     rng = np.random.default_rng(0)
     bright = cv2.GaussianBlur(rng.uniform(60, 200, (350, 660)).astype(np.uint8), (0, 0), 3)

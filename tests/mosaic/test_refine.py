@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mosaic.curved import curved_pair
-from mosaic.refine import level_scales, refine_pair
+from mosaic.refine import level_scales, refine_pair, relocalise
 from mosaic.registration import apply_homography, apply_quadratic, robust_fit
 
 
@@ -59,6 +59,44 @@ def test_refinement_lowers_the_error_of_coarse_matches_against_the_truth(pair):
     e_after = np.linalg.norm(apply_quadratic(refined.fit.Q, xy) - truth, axis=1).mean()
     assert e_after < e_before / 3, (e_before, e_after)
     assert e_after < 0.5, (e_before, e_after)
+
+
+def test_relocalise_takes_more_matches_than_one_remap_can_hold(pair):
+    """2000 matches (their 35-row windows stacked: 70,000 rows, past OpenCV's 32,767): every
+    one is placed, to the truth, as in smaller batches."""
+    xy, truth = _points(pair, n=200)
+    H, _ = cv2.findHomography(xy, truth, 0)
+    many = np.tile(xy, (10, 1))
+
+    def predict(q):
+        return apply_homography(H, q)
+
+    grey = pair.fixed[..., 1].astype(np.float32), pair.moving[..., 1].astype(np.float32)
+    placed, _ = relocalise(*grey, many, predict, 1.0)
+    one, _ = relocalise(*grey, xy, predict, 1.0)
+    assert np.isfinite(placed).all(1).mean() > 0.9
+    np.testing.assert_allclose(placed, np.tile(one, (10, 1)), atol=1e-6)
+    ok = np.isfinite(one).all(1)
+    assert np.median(np.linalg.norm(one[ok] - truth[ok], axis=1)) < 0.3
+
+
+def test_refinement_stops_where_the_photographs_hold_no_more_detail(pair):
+    """A moving photograph upsampled 8x from an eighth of its size and very noisy: the full
+    resolution level re-localises few matches (10 of 150), so the answer stands at the level
+    before, and it is still better than the coarse fit."""
+    xy, truth = _points(pair)
+    rng = np.random.default_rng(3)
+    small = cv2.resize(pair.moving, None, fx=0.125, fy=0.125, interpolation=cv2.INTER_AREA)
+    blurred = cv2.resize(small, (1024, 1024), interpolation=cv2.INTER_CUBIC).astype(np.float32)
+    moving = np.clip(blurred + rng.normal(0, 40, blurred.shape), 0, 255).astype(np.uint8)
+    coarse = truth + rng.normal(0, 4.0, truth.shape)
+    H0, _ = cv2.findHomography(xy, coarse, 0)
+    before = robust_fit(xy, coarse, (1024, 1024), H0, 16.0, "quadratic")
+    e_before = np.linalg.norm(apply_quadratic(before.Q, xy) - truth, axis=1).mean()
+    refined = refine_pair(pair.fixed, moving, xy, H0, 0.125, 3, "quadratic", 16.0)
+    assert refined is not None and refined.levels == 2
+    e_after = np.linalg.norm(apply_quadratic(refined.fit.Q, xy) - truth, axis=1).mean()
+    assert e_after < e_before / 2, (e_before, e_after)
 
 
 def test_tracking_places_points_on_a_blurred_noisy_view_better_than_their_prediction(fundus):
