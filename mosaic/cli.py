@@ -414,8 +414,8 @@ def synth(
         typer.Option(
             help="Like real magnified fundus video: 25-45 % of the source's view per frame, "
             "its rim at times, strong vignetting, gain/gamma changes, blur/defocus/glare bursts. "
-            "Curved pairs: each photograph as from its own visit (focus, illumination, gamma, "
-            "colour, lesions, noise, JPEG quality)."
+            "Curved pairs: the aperture filled, each photograph as from its own visit (focus, "
+            "illumination, gamma, colour, lesions, noise, JPEG quality)."
         ),
     ] = False,
     curved_pairs: Annotated[
@@ -449,7 +449,7 @@ def synth(
 
 
 def _curved_pairs(
-    image: Path, output: Path, n_pairs: int, seed: int, size: str | None, visits: bool
+    image: Path, output: Path, n_pairs: int, seed: int, size: str | None, realistic: bool
 ) -> None:
     """`synth --curved-pairs`: the pairs in FIRE's layout (`mosaic.curved.write_fire_folder`)."""
     from mosaic.curved import write_fire_folder
@@ -458,7 +458,7 @@ def _curved_pairs(
     if width != height:
         raise InputError(f"curved pairs are square: --size {size} is not")
     sources = [pick_source(image, seed + i) for i in range(n_pairs)]
-    write_fire_folder(sources, output, n_pairs, seed=seed, size=width, visits=visits)
+    write_fire_folder(sources, output, n_pairs, seed=seed, size=width, realistic=realistic)
     typer.echo(
         f"{n_pairs} curved pairs: {output} (FIRE layout; {output / 'pairs.csv'} for "
         f"mosaic register --pairs)\nsources: {', '.join(sorted({s.name for s in sources}))}"

@@ -115,9 +115,11 @@ def _render(
     camera: Camera,
     src_cam: Camera,
     rng: np.random.Generator,
+    filled: bool = False,
 ) -> np.ndarray:
     """The photograph `camera` takes of the sphere painted with `source`, with a circular
-    aperture, vignetting, a gain and noise."""
+    aperture, vignetting, a gain and noise. Beyond the source's disc the sphere is black, or
+    with `filled` painted with the source's reflection in its rim (a real retina goes on)."""
     n = camera.size
     step = 4  # the map is computed on a coarse grid and interpolated (smooth, exact to ~1e-3 px)
     g = np.arange(0, n + step, step, dtype=np.float64)
@@ -133,6 +135,8 @@ def _render(
     ux, uy = np.meshgrid(u, u)
     map_x = cv2.remap(coarse_x, ux, uy, cv2.INTER_LINEAR)
     map_y = cv2.remap(coarse_y, ux, uy, cv2.INTER_LINEAR)
+    if filled:
+        map_x, map_y = _reflect_beyond(map_x, map_y, (cx, cy, 0.97 * r))
     img = cv2.remap(source, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT)
     inside_src = np.hypot(map_x - cx, map_y - cy) < r * 0.99
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
@@ -143,6 +147,18 @@ def _render(
     out += rng.normal(0, 2.0, out.shape).astype(np.float32)
     out[rho > 1] = 0
     return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def _reflect_beyond(
+    map_x: np.ndarray, map_y: np.ndarray, disc: tuple[float, float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Source positions beyond the disc (cx, cy, r) moved to their reflection in its rim
+    (radius 2 r - rho, same direction), so the sphere is painted everywhere."""
+    cx, cy, r = disc
+    dx, dy = map_x - cx, map_y - cy
+    rho = np.hypot(dx, dy)
+    k = np.where(rho > r, np.maximum(2 * r - rho, 0.0) / np.maximum(rho, 1e-6), 1.0)
+    return (cx + dx * k).astype(np.float32), (cy + dy * k).astype(np.float32)
 
 
 def _visit(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -186,14 +202,15 @@ def curved_pair(
     turn_deg: float = 16.0,
     n_points: int = 10,
     pupil_distance: float = 1.0,
-    visits: bool = False,
+    realistic: bool = False,
 ) -> CurvedPair:
     """A pair of `size` px photographs of the retina of `source` (a fundus image) taken from two
     camera poses `seed` draws: eye turns of up to `turn_deg` each way (overlap shrinks as it
     grows), rolls of up to 10 degrees, distances from the eye's centre around `pupil_distance`
     (1: at the pupil). `n_points` control points lie where both views see the retina.
-    `visits`: each photograph also as from its own visit (`_visit`: focus, illumination,
-    gamma, colour, lesions, noise), as in follow-up pairs."""
+    `realistic`: as a real camera's follow-up pair: the aperture always filled (the retina
+    continues beyond the source's rim as its reflection, `_render`), each photograph as from
+    its own visit (`_visit`: focus, illumination, gamma, colour, lesions, noise)."""
     rng = np.random.default_rng(seed)
     disc = estimate_fov_disc(source)
     src_cam = _camera(np.zeros(2), 0.0, pupil_distance, 2 * int(disc[2]) + 1, HALF_FIELD_DEG)
@@ -203,9 +220,9 @@ def curved_pair(
         roll = math.radians(rng.uniform(-10, 10))
         distance = pupil_distance * rng.uniform(0.97, 1.03)
         cams.append(_camera(turn, roll, distance, size, HALF_FIELD_DEG))
-    fixed = _render(source, disc, cams[0], src_cam, rng)
-    moving = _render(source, disc, cams[1], src_cam, rng)
-    if visits:  # its own generator: the geometry and the plain pairs stay as they were
+    fixed = _render(source, disc, cams[0], src_cam, rng, realistic)
+    moving = _render(source, disc, cams[1], src_cam, rng, realistic)
+    if realistic:  # its own generator: the geometry and the plain pairs stay as they were
         visit_rng = np.random.default_rng([seed, 1])
         fixed, moving = _visit(fixed, visit_rng), _visit(moving, visit_rng)
     pair = CurvedPair(fixed, moving, cams[0], cams[1], np.zeros((0, 4)))
@@ -252,11 +269,11 @@ def write_fire_folder(
     seed: int = 0,
     size: int = 2048,
     turn_deg: float = 16.0,
-    visits: bool = False,
+    realistic: bool = False,
 ) -> Path:
     """Write `n_pairs` curved pairs (sources taken in turn) in the FIRE layout under `out`, and
-    `pairs.csv` (fixed,moving) for `mosaic register --pairs`; returns `out`. `visits`: as in
-    `curved_pair`, and JPEG quality 70-95 instead of 95."""
+    `pairs.csv` (fixed,moving) for `mosaic register --pairs`; returns `out`. `realistic`: as
+    in `curved_pair`, and JPEG quality 70-95 instead of 95."""
     images, truth = out / "Images", out / "Ground Truth"
     images.mkdir(parents=True, exist_ok=True)
     truth.mkdir(parents=True, exist_ok=True)
@@ -265,8 +282,10 @@ def write_fire_folder(
         source = cv2.imread(str(sources[i % len(sources)]), cv2.IMREAD_COLOR)
         if source is None:
             raise InputError(f"cannot read {sources[i % len(sources)]}")
-        pair = curved_pair(source, seed=seed + i, size=size, turn_deg=turn_deg, visits=visits)
-        quality = np.random.default_rng([seed + i, 2]).integers(70, 96, 2) if visits else (95, 95)
+        pair = curved_pair(source, seed=seed + i, size=size, turn_deg=turn_deg, realistic=realistic)
+        quality = (
+            np.random.default_rng([seed + i, 2]).integers(70, 96, 2) if realistic else (95, 95)
+        )
         name = f"C{i + 1:02d}"
         for k, image in enumerate((pair.fixed, pair.moving)):
             path = images / f"{name}_{k + 1}.jpg"

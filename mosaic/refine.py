@@ -316,6 +316,42 @@ def fit_pair(
     return fit, 0
 
 
+OVERLAP_SHRINK = 0.9  # the retina's outer tenth (dim, little matched) is left out of the overlap
+OVERLAP_GRID = 64  # samples across the moving image
+
+
+def overlap_homography(
+    Q: np.ndarray,
+    H: np.ndarray,
+    moving_shape: tuple[int, int],
+    fixed_shape: tuple[int, int],
+    moving_disc: tuple[float, float, float] | None,
+    fixed_disc: tuple[float, float, float] | None,
+) -> np.ndarray:
+    """The homography closest (least squares) to the quadratic `Q` (moving -> fixed) over the
+    overlap: where both photographs see the retina (each one's disc without its outer tenth,
+    or its whole frame when it has none). On a curved retina no homography fits everywhere;
+    this one spreads its error evenly over the retina both photographs show, rather than over
+    where the matches cluster (a robust fit to them also drops the periphery, where the
+    curvature's residuals are largest). `H` (the robust fit) when the overlap is too small."""
+
+    def inside(xy: np.ndarray, shape: tuple[int, int], disc) -> np.ndarray:
+        if disc is None:
+            return (xy >= 0).all(1) & (xy[:, 0] <= shape[1] - 1) & (xy[:, 1] <= shape[0] - 1)
+        return np.hypot(xy[:, 0] - disc[0], xy[:, 1] - disc[1]) < OVERLAP_SHRINK * disc[2]
+
+    h, w = moving_shape
+    step = max(h, w) / OVERLAP_GRID
+    gx, gy = np.meshgrid(np.arange(0, w, step), np.arange(0, h, step))
+    grid = np.column_stack([gx.ravel(), gy.ravel()])
+    target = apply_quadratic(Q, grid)
+    use = inside(grid, moving_shape, moving_disc) & inside(target, fixed_shape, fixed_disc)
+    if use.sum() < OVERLAP_GRID:
+        return H
+    H_fit, _ = cv2.findHomography(grid[use], target[use], 0)
+    return H if H_fit is None else H_fit / H_fit[2, 2]
+
+
 def fixed_to_moving_map(
     H: np.ndarray, Q: np.ndarray | None, fixed_shape: tuple[int, int], step: int = 8
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -263,6 +263,14 @@ def test_register_curved_pair_prints_the_quadratic_and_warps(tmp_path):
     )
     assert err.mean() < 1.0  # px at 1024
     assert cv2.imread(str(warp)).shape == (1024, 2048, 3)
+    # --model homography answers the same homography (the best over the overlap), alone
+    args = ["register", str(fixed), str(moving), "--json", "--model", "homography"]
+    only = json.loads(CliRunner().invoke(app, args).output)
+    assert only["model"] == "homography" and only["Q_moving_to_fixed"] is None
+    H = np.array(only["H_moving_to_fixed"])
+    np.testing.assert_allclose(H, np.array(out["H_moving_to_fixed"]), rtol=1e-6, atol=1e-9)
+    err_h = np.linalg.norm(cv2.perspectiveTransform(cp[None, :, 2:], H)[0] - cp[:, :2], axis=1)
+    assert err.mean() < err_h.mean() / 2
 
 
 def test_register_pair_without_overlap_fails_with_a_clear_status(tmp_path):

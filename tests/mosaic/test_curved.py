@@ -2,8 +2,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic.curved import curved_pair, write_fire_folder
+from mosaic.curved import APERTURE, curved_pair, write_fire_folder
 from mosaic.datasets import load_fire
+from mosaic.preprocess import retina_disc
 
 
 @pytest.fixture(scope="module")
@@ -50,12 +51,13 @@ def test_fire_folder_loads_as_fire(tmp_path, source):
     assert (out / "pairs.csv").read_text().splitlines()[0] == "fixed,moving"
 
 
-def test_visits_change_the_photographs_not_the_geometry(source):
-    """A follow-up pair (`visits`): the same cameras and control points as the plain pair;
+def test_realistic_pairs_change_the_photographs_not_the_geometry(source):
+    """A follow-up pair (`realistic`): the same cameras and control points as the plain pair;
     each photograph differs from its plain rendering (focus, light, gamma, colour, noise) but
-    still shows the same retina there, and the two differ from each other in brightness."""
+    still shows the same retina there, the two differ from each other in brightness, and the
+    aperture is filled: each is a whole retina to `retina_disc`."""
     plain = curved_pair(source, seed=4, size=384)
-    visit = curved_pair(source, seed=4, size=384, visits=True)
+    visit = curved_pair(source, seed=4, size=384, realistic=True)
     np.testing.assert_array_equal(visit.control_points, plain.control_points)
     for a, b in ((plain.fixed, visit.fixed), (plain.moving, visit.moving)):
         inside = a[..., 1] > 20
@@ -70,3 +72,8 @@ def test_visits_change_the_photographs_not_the_geometry(source):
         for v, p in ((visit.fixed, plain.fixed), (visit.moving, plain.moving))
     ]
     assert abs(level[0] - level[1]) > 0.02
+    c = (384 - 1) / 2
+    for image in (visit.fixed, visit.moving):
+        disc = retina_disc(image)
+        assert disc is not None
+        assert abs(disc[0] - c) < 3 and abs(disc[1] - c) < 3 and abs(disc[2] - APERTURE * c) < 4
