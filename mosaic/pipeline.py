@@ -46,7 +46,7 @@ from mosaic.preprocess import (
     working_scale,
 )
 from mosaic.quality import frame_vs_canvas
-from mosaic.refine import fit_pair, lk_texture, overlap_homography
+from mosaic.refine import fit_pair, lk_texture
 from mosaic.registration import MODELS, Registration, estimate_motion
 from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
@@ -892,11 +892,8 @@ def register_pair(
         return reg
     H = np.linalg.inv(S_fixed) @ reg.H_cur_to_prev @ S_moving
     reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])
-    if reg.model != "homography" and model not in ("homography", "quadratic", "auto"):
+    if model not in ("homography", "quadratic", "auto"):
         return reg  # a simpler model was asked for: nothing to refine it towards
-    # The homography answered is the best one over the overlap, measured against the fitted
-    # quadratic (`overlap_homography`): the refinement fits both whichever is asked for.
-    pair_model = "quadratic" if model == "quadratic" else "auto"
     xy_full = (xy_moving[reg.inliers] + 0.5) / S_moving[0, 0] - 0.5
     xy_target = (features_fixed.xy[matches.idx_a][reg.inliers] + 0.5) / S_fixed[0, 0] - 0.5
     fit, levels_done = fit_pair(
@@ -907,24 +904,13 @@ def register_pair(
         reg.H_cur_to_prev,
         min(scales),
         config.registration,
-        pair_model,
+        model,
     )
-    H = fit.H
-    if fit.model == "quadratic":
-        H = overlap_homography(
-            fit.Q,
-            fit.H,
-            moving.shape[:2],
-            fixed.shape[:2],
-            retina_disc(moving),
-            retina_disc(fixed),
-        )
-    chosen = fit.model if model in ("quadratic", "auto") else "homography"
     return dataclasses.replace(
         reg,
-        H_cur_to_prev=H,
-        Q_cur_to_prev=fit.Q if chosen == "quadratic" else None,
-        model=chosen,
+        H_cur_to_prev=fit.H,
+        Q_cur_to_prev=fit.Q if fit.model == "quadratic" else None,
+        model=fit.model,
         refined_levels=levels_done,
         reproj_error_px=fit.rms_px,
     )

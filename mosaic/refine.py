@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from mosaic.config import RegistrationConfig
+from mosaic.preprocess import retina_disc
 from mosaic.registration import RobustFit, apply_homography, apply_quadratic, robust_fit
 
 log = logging.getLogger(__name__)
@@ -296,8 +297,14 @@ def fit_pair(
     resolution, found at `start_scale`) and coarse homography: refined through `config.
     refine_levels` levels (`refine_pair`), or, with none or when refinement keeps fewer than
     `config.min_inliers` matches, fitted robustly to the coarse matches; and the levels done.
-    `model` as in `registration.robust_fit`."""
+
+    `model`: "homography", "quadratic" or "auto" (the quadratic where it pays, as in
+    `registration.robust_fit`). The quadratic is fitted in every case: the answer's `H` is
+    the homography closest to it over the overlap (`overlap_homography`), the best single
+    homography for a curved retina, and "homography" answers that one alone."""
+    inner = "quadratic" if model == "quadratic" else "auto"
     coarse_px = config.reproj_threshold_px / start_scale  # the coarse threshold, full resolution
+    fit, levels = None, 0
     if config.refine_levels > 0:
         refined = refine_pair(
             fixed,
@@ -306,14 +313,22 @@ def fit_pair(
             H_moving_to_fixed,
             start_scale,
             config.refine_levels,
-            model,
+            inner,
             coarse_px,
         )
         if refined is not None and refined.fit.inliers.sum() >= config.min_inliers:
-            return refined.fit, refined.levels
-        log.info("refinement kept too few matches: the coarse registration stands")
-    fit = robust_fit(xy_moving, xy_fixed, moving.shape[:2], H_moving_to_fixed, coarse_px, model)
-    return fit, 0
+            fit, levels = refined.fit, refined.levels
+        else:
+            log.info("refinement kept too few matches: the coarse registration stands")
+    if fit is None:
+        fit = robust_fit(xy_moving, xy_fixed, moving.shape[:2], H_moving_to_fixed, coarse_px, inner)
+    if fit.model != "quadratic":
+        return fit, levels
+    H = overlap_homography(
+        fit.Q, fit.H, moving.shape[:2], fixed.shape[:2], retina_disc(moving), retina_disc(fixed)
+    )
+    answer = "homography" if model == "homography" else "quadratic"
+    return RobustFit(H, fit.Q, fit.inliers, answer, fit.rms_px), levels
 
 
 OVERLAP_SHRINK = 0.9  # the retina's outer tenth (dim, little matched) is left out of the overlap
