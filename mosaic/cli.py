@@ -427,6 +427,15 @@ def synth(
             "camera poses of seed + i).",
         ),
     ] = 0,
+    turn_deg: Annotated[
+        float,
+        typer.Option(
+            min=0.0,
+            max=40.0,
+            help="Curved pairs: the eye turns up to half this each way per photograph (the "
+            "larger, the less overlap and the more curvature between the two).",
+        ),
+    ] = 16.0,
 ) -> None:
     """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json), or
     pairs of photographs of a curved retina with exact control points (--curved-pairs)."""
@@ -437,7 +446,9 @@ def synth(
         if hard and realistic:
             raise InputError("choose one of --hard and --realistic")
         if curved_pairs:
-            _curved_pairs(image or sample_image_path(), output, curved_pairs, seed, size, realistic)
+            _curved_pairs(
+                image or sample_image_path(), output, curved_pairs, seed, size, realistic, turn_deg
+            )
             return
         make = SynthParams.hard if hard else SynthParams.realistic if realistic else SynthParams
         params = make(
@@ -449,7 +460,13 @@ def synth(
 
 
 def _curved_pairs(
-    image: Path, output: Path, n_pairs: int, seed: int, size: str | None, realistic: bool
+    image: Path,
+    output: Path,
+    n_pairs: int,
+    seed: int,
+    size: str | None,
+    realistic: bool,
+    turn_deg: float,
 ) -> None:
     """`synth --curved-pairs`: the pairs in FIRE's layout (`mosaic.curved.write_fire_folder`)."""
     from mosaic.curved import write_fire_folder
@@ -458,7 +475,9 @@ def _curved_pairs(
     if width != height:
         raise InputError(f"curved pairs are square: --size {size} is not")
     sources = [pick_source(image, seed + i) for i in range(n_pairs)]
-    write_fire_folder(sources, output, n_pairs, seed=seed, size=width, realistic=realistic)
+    write_fire_folder(
+        sources, output, n_pairs, seed=seed, size=width, turn_deg=turn_deg, realistic=realistic
+    )
     typer.echo(
         f"{n_pairs} curved pairs: {output} (FIRE layout; {output / 'pairs.csv'} for "
         f"mosaic register --pairs)\nsources: {', '.join(sorted({s.name for s in sources}))}"

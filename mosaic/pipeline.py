@@ -862,7 +862,9 @@ def register_pair(
     Each image is registered at its working size (its retina's diameter at `[preprocess]
     fov_diameter_px` when it shows a whole one, else `max_side_px`; `working_scales`), then
     refined through `[registration] refine_levels` levels up to the full resolution
-    (`refine.refine_pair`); a refinement that loses the matches keeps the coarse answer."""
+    (`refine.refine_pair`); a refinement that loses the matches keeps the coarse answer. With
+    "auto", photographs of a whole retina are always refined (homography or quadratic, which
+    the working size cannot tell apart); other views keep a simpler coarse model."""
     model = model or config.registration.model
     pre = config.preprocess
     fixed_work, S_fixed = to_working_size(fixed, pre.max_side_px, pre.fov_diameter_px)
@@ -894,6 +896,8 @@ def register_pair(
     reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])
     if model not in ("homography", "quadratic", "auto"):
         return reg  # a simpler model was asked for: nothing to refine it towards
+    if model == "auto" and reg.model != "homography" and retina_disc(moving) is None:
+        return reg  # a simpler model fits these views (magnified, nearly flat): it stands
     xy_full = (xy_moving[reg.inliers] + 0.5) / S_moving[0, 0] - 0.5
     xy_target = (features_fixed.xy[matches.idx_a][reg.inliers] + 0.5) / S_fixed[0, 0] - 0.5
     fit, levels_done = fit_pair(
