@@ -6,8 +6,10 @@ match's moving point is predicted in the fixed image by the current transform, a
 it, warped by the transform's local affine part so that it looks as it must in the fixed image,
 is searched by normalised cross-correlation in a small window there, and the peak (sub-pixel,
 a parabola per axis) is its new fixed position; the transform is then fitted again, robustly,
-on the re-localised matches. Cost: one `cv2.remap` per image and level for all templates and
-windows, one small `cv2.matchTemplate` per match and level.
+on the re-localised matches (an inlier a level cannot place keeps its place from the level
+before, at that level's lower weight; a level that places fewer than half of them ends the
+refinement). Cost: one `cv2.remap` per image and level for all templates and windows, one
+small `cv2.matchTemplate` per match and level.
 
 Video registrations are refined by tracking instead (`track_points`, `[registration]
 track_window_px`): each inlier of the current frame is followed into the reference frame by
@@ -132,8 +134,8 @@ class Refined:
 
     fit: RobustFit
     xy_moving: np.ndarray  # (N, 2) full-resolution pixels
-    xy_fixed: np.ndarray  # (N, 2) re-localised positions in the fixed image
-    ncc: np.ndarray  # (N,) correlation peak at the last level
+    xy_fixed: np.ndarray  # (N, 2) places in the fixed image, from the finest level that found them
+    weight: np.ndarray  # (N,) in the last fit: the correlation peak, lower if carried; 0: unused
     levels: int
 
 
@@ -257,6 +259,9 @@ def refine_pair(
         return apply_homography(H, q)
 
     done: Refined | None = None
+    placed = np.full((len(xy_moving), 2), np.nan)  # each match's best place so far, full res
+    weight = np.zeros(len(xy_moving))
+    previous = start_scale
     for level, scale in enumerate(level_scales(start_scale, levels), 1):
         xy_f, ncc = relocalise(g_fixed, g_moving, xy_moving, predict, scale)
         ok = np.isfinite(xy_f).all(1) & (ncc >= MIN_NCC)
@@ -265,21 +270,28 @@ def refine_pair(
             # The photographs hold no more detail here (defocus, noise, upsampled): the
             # previous level's answer stands rather than one fitted to a few matches.
             break
+        # A previous inlier this level cannot place keeps its place from the level before,
+        # at that level's coarser precision (weight ~ scale^2), so no region goes unmatched.
+        carried = ~ok & (done.fit.inliers if done is not None else False)
+        weight[carried] *= (previous / scale) ** 2
+        placed[ok], weight[ok] = xy_f[ok], ncc[ok]
+        use = ok | carried
         fit = robust_fit(
-            xy_moving[ok],
-            xy_f[ok],
+            xy_moving[use],
+            placed[use],
             shape,
             H,
             THRESHOLD_LEVEL_PX / scale,
             model,
-            weights=ncc[ok],
+            weights=weight[use],
             homography_threshold_px=homography_threshold_px,
         )
         H = fit.H
         inliers = np.zeros(len(xy_moving), bool)
-        inliers[np.flatnonzero(ok)[fit.inliers]] = True
+        inliers[np.flatnonzero(use)[fit.inliers]] = True
         fit = RobustFit(fit.H, fit.Q, inliers, fit.model, fit.rms_px)
-        done = Refined(fit, xy_moving, xy_f, ncc, level)
+        done = Refined(fit, xy_moving, placed.copy(), np.where(use, weight, 0.0), level)
+        previous = scale
     return done
 
 
