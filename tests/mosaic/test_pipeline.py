@@ -539,3 +539,39 @@ def test_turns_keep_the_network_and_the_registration_apart():
 def test_turns_let_a_stream_stop_early_without_waiting():
     events, _ = _turn_taking(stop_after=3)
     assert ("register", 3) in events and ("register", 4) not in events
+
+
+@pytest.mark.parametrize("whole_retina", [True, False])
+def test_auto_refines_photographs_of_a_whole_retina_whatever_the_coarse_model(
+    whole_retina, monkeypatch
+):
+    """At the working size a similarity can win the coarse model selection on a fundus pair;
+    `auto` then still refines to full resolution (the quadratic here, within a pixel of the
+    exact truth), while views without a retina's rim (magnified) keep the simpler model."""
+    import dataclasses
+
+    from mosaic import pipeline
+    from mosaic.curved import curved_pair
+    from mosaic.features import FeatureExtractor
+    from mosaic.registration import apply_quadratic
+
+    pair = curved_pair(cv2.imread(str(SAMPLE_IMAGE)), seed=3, size=1024)
+    fixed, moving = pair.fixed, pair.moving
+    if not whole_retina:
+        fixed, moving = fixed[212:812, 212:812], moving[212:812, 212:812]
+    estimate = pipeline.estimate_motion
+
+    def as_similarity(*args, **kwargs):
+        return dataclasses.replace(estimate(*args, **kwargs), model="similarity")
+
+    monkeypatch.setattr(pipeline, "estimate_motion", as_similarity)
+    config = _config()
+    reg = pipeline.register_pair(fixed, moving, config, FeatureExtractor(config.features), "auto")
+    assert reg.ok
+    if not whole_retina:
+        assert reg.model == "similarity" and not reg.refined_levels
+        return
+    assert reg.model == "quadratic" and reg.refined_levels == 3
+    cp = pair.control_points
+    error = np.linalg.norm(apply_quadratic(reg.Q_cur_to_prev, cp[:, 2:]) - cp[:, :2], axis=1)
+    assert error.mean() < 1.0, error
