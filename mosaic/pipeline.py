@@ -39,10 +39,10 @@ from mosaic.preprocess import (
     FrameGate,
     OverlayMask,
     Prepared,
+    pair_working_scales,
     prepare,
     resize_by,
     retina_disc,
-    to_working_size,
     working_scale,
 )
 from mosaic.quality import frame_vs_canvas
@@ -867,8 +867,11 @@ def register_pair(
     the working size cannot tell apart); other views keep a simpler coarse model."""
     model = model or config.registration.model
     pre = config.preprocess
-    fixed_work, S_fixed = to_working_size(fixed, pre.max_side_px, pre.fov_diameter_px)
-    moving_work, S_moving = to_working_size(moving, pre.max_side_px, pre.fov_diameter_px)
+    scale_fixed, scale_moving = pair_working_scales(
+        fixed, moving, pre.max_side_px, pre.fov_diameter_px
+    )
+    fixed_work, S_fixed = resize_by(fixed, scale_fixed)
+    moving_work, S_moving = resize_by(moving, scale_moving)
     features_fixed = extractor(prepare(fixed_work, pre))
     features_moving = extractor(prepare(moving_work, pre))
     matches = match_descriptors(

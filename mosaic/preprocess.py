@@ -202,11 +202,35 @@ def working_scale(image: np.ndarray, max_side_px: int, fov_diameter_px: int = 0)
     """Scale (<= 1) of the image registration runs on: the retina's diameter brought to
     `fov_diameter_px` (the scale the detector was trained at) when the image shows a whole
     retina (`retina_disc`), else the longer side brought to `max_side_px`; 0 turns either off."""
-    if fov_diameter_px > 0:
-        disc = retina_disc(image)
-        if disc is not None:
-            return min(1.0, fov_diameter_px / (2 * disc[2]))
-    h, w = image.shape[:2]
+    disc = retina_disc(image) if fov_diameter_px > 0 else None
+    return _scale_for(image.shape, disc, max_side_px, fov_diameter_px)
+
+
+def pair_working_scales(
+    a: np.ndarray, b: np.ndarray, max_side_px: int, fov_diameter_px: int = 0
+) -> tuple[float, float]:
+    """`working_scale` of two photographs of one eye, except that when they are the same size
+    and only one shows a whole retina, both take its scale: the same camera shows the retina at
+    the same size, and a disc missed in one photograph (glare on its rim, a bright border) must
+    not have the two registered at different scales."""
+    discs = [retina_disc(i) if fov_diameter_px > 0 else None for i in (a, b)]
+    if a.shape[:2] == b.shape[:2] and (discs[0] is None) != (discs[1] is None):
+        discs = [discs[0] or discs[1]] * 2
+    return (
+        _scale_for(a.shape, discs[0], max_side_px, fov_diameter_px),
+        _scale_for(b.shape, discs[1], max_side_px, fov_diameter_px),
+    )
+
+
+def _scale_for(
+    shape: tuple[int, ...],
+    disc: tuple[float, float, float] | None,
+    max_side_px: int,
+    fov_diameter_px: int,
+) -> float:
+    if fov_diameter_px > 0 and disc is not None:
+        return min(1.0, fov_diameter_px / (2 * disc[2]))
+    h, w = shape[:2]
     if max_side_px <= 0 or max(h, w) <= max_side_px:
         return 1.0
     return max_side_px / max(h, w)

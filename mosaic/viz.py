@@ -212,14 +212,15 @@ def pair_matches_picture(
     within RANSAC's threshold at full resolution; drawn by `draw_pair_matches`."""
     from mosaic.features import to_frame_pixels
     from mosaic.matching import match_descriptors
-    from mosaic.preprocess import prepare, to_working_size
+    from mosaic.preprocess import pair_working_scales, prepare, resize_by
     from mosaic.registration import apply_homography, apply_quadratic
 
     pre = config.preprocess
     xys, scales = [], []
     descriptors = []
-    for image in (fixed, moving):
-        work, S = to_working_size(image, pre.max_side_px, pre.fov_diameter_px)
+    pair_scales = pair_working_scales(fixed, moving, pre.max_side_px, pre.fov_diameter_px)
+    for image, working in zip((fixed, moving), pair_scales, strict=True):
+        work, S = resize_by(image, working)
         features = extractor(prepare(work, pre))
         scale = 1.0 if S is None else float(S[0, 0])
         xys.append(to_frame_pixels(features.xy, np.float32(1.0 / scale)))

@@ -198,6 +198,24 @@ def test_retina_disc_of_a_dark_photograph_whose_rim_is_a_few_grey_levels_above_b
     assert abs(disc[2] - 460) < 0.02 * 460 and abs(disc[0] - 500) < 0.01 * 460
 
 
+def test_a_pair_of_the_same_size_shares_the_scale_of_the_one_whole_retina():
+    """Two photographs from one camera, the disc of one missed (its border lit on three sides):
+    both are brought to the found retina's scale; different sizes keep their own scales."""
+    from mosaic.preprocess import pair_working_scales
+
+    a = _fundus(1000, 1000, 500.0, 500.0, 460.0)
+    b = _fundus(1000, 1000, 500.0, 500.0, 460.0, seed=1)
+    yy, xx = np.mgrid[0:1000, 0:1000]
+    outside = (np.hypot(xx - 500, yy - 500) > 460) & (xx < 800)
+    b[outside] = 120
+    assert retina_disc(a) is not None and retina_disc(b) is None
+    s_a, s_b = pair_working_scales(a, b, 800, 512)
+    assert s_a == pytest.approx(512 / 920, rel=0.02) and s_b == s_a
+    assert pair_working_scales(b, a, 800, 512) == (s_a, s_a)
+    small = cv2.resize(b, (700, 700))
+    assert pair_working_scales(a, small, 800, 512) == (s_a, 1.0)
+
+
 def test_retina_disc_is_none_for_frames_bright_to_their_edges_or_showing_a_bit_of_rim():
     rng = np.random.default_rng(0)
     bright = cv2.GaussianBlur(rng.uniform(60, 200, (350, 660)).astype(np.uint8), (0, 0), 3)
