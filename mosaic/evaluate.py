@@ -57,7 +57,7 @@ from mosaic.fidelity import (
 from mosaic.io import atomic_path, read_image, write_json, write_text
 from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicResult
-from mosaic.preprocess import field_of_view_mask, prepare, scale_matrix, to_gray
+from mosaic.preprocess import field_of_view_mask, prepare, retina_disc, scale_matrix, to_gray
 from mosaic.quality import spearman
 from mosaic.refine import fit_pair
 from mosaic.registration import MODELS as MOTION_MODELS
@@ -338,6 +338,7 @@ def fire_variants(
     xy_fixed, xy_moving = inliers
     truth, points = pair.control_points[:, :2], pair.control_points[:, 2:4]
     H0 = np.linalg.inv(H_est_1_to_2)
+    discs = retina_disc(pair.image1), retina_disc(pair.image2)  # once for the four fits
     errors, seconds = {}, {}
     for name, (model, refined) in variants.items():
         levels = config.refine_levels if refined else 0
@@ -351,6 +352,7 @@ def fire_variants(
             start_scale,
             dataclasses.replace(config, refine_levels=levels),
             model,
+            discs,
         )
         seconds[name] = time.perf_counter() - start
         mapped = (

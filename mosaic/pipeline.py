@@ -867,8 +867,9 @@ def register_pair(
     the working size cannot tell apart); other views keep a simpler coarse model."""
     model = model or config.registration.model
     pre = config.preprocess
+    discs = retina_disc(fixed), retina_disc(moving)  # working sizes, model, overlap
     scale_fixed, scale_moving = pair_working_scales(
-        fixed, moving, pre.max_side_px, pre.fov_diameter_px
+        fixed, moving, pre.max_side_px, pre.fov_diameter_px, discs
     )
     fixed_work, S_fixed = resize_by(fixed, scale_fixed)
     moving_work, S_moving = resize_by(moving, scale_moving)
@@ -899,7 +900,7 @@ def register_pair(
     reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])
     if model not in ("homography", "quadratic", "auto"):
         return reg  # a simpler model was asked for: nothing to refine it towards
-    if model == "auto" and reg.model != "homography" and retina_disc(moving) is None:
+    if model == "auto" and reg.model != "homography" and discs[1] is None:
         return reg  # a simpler model fits these views (magnified, nearly flat): it stands
     xy_full = (xy_moving[reg.inliers] + 0.5) / S_moving[0, 0] - 0.5
     xy_target = (features_fixed.xy[matches.idx_a][reg.inliers] + 0.5) / S_fixed[0, 0] - 0.5
@@ -912,6 +913,7 @@ def register_pair(
         min(scales),
         config.registration,
         model,
+        discs,
     )
     return dataclasses.replace(
         reg,

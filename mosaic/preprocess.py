@@ -206,16 +206,25 @@ def working_scale(image: np.ndarray, max_side_px: int, fov_diameter_px: int = 0)
     return _scale_for(image.shape, disc, max_side_px, fov_diameter_px)
 
 
+Disc = tuple[float, float, float]  # (cx, cy, r) px: a retina's field of view (`retina_disc`)
+
+
 def pair_working_scales(
-    a: np.ndarray, b: np.ndarray, max_side_px: int, fov_diameter_px: int = 0
+    a: np.ndarray,
+    b: np.ndarray,
+    max_side_px: int,
+    fov_diameter_px: int = 0,
+    discs: tuple[Disc | None, Disc | None] | None = None,
 ) -> tuple[float, float]:
     """`working_scale` of two photographs of one eye, except that when they are the same size
     and only one shows a whole retina, both take its scale: the same camera shows the retina at
     the same size, and a disc missed in one photograph (glare on its rim, a bright border) must
-    not have the two registered at different scales."""
-    discs = [retina_disc(i) if fov_diameter_px > 0 else None for i in (a, b)]
+    not have the two registered at different scales. `discs`: their `retina_disc`s, when the
+    caller has them already."""
+    if discs is None:
+        discs = (retina_disc(a), retina_disc(b)) if fov_diameter_px > 0 else (None, None)
     if a.shape[:2] == b.shape[:2] and (discs[0] is None) != (discs[1] is None):
-        discs = [discs[0] or discs[1]] * 2
+        discs = (discs[0] or discs[1],) * 2
     return (
         _scale_for(a.shape, discs[0], max_side_px, fov_diameter_px),
         _scale_for(b.shape, discs[1], max_side_px, fov_diameter_px),
@@ -224,7 +233,7 @@ def pair_working_scales(
 
 def _scale_for(
     shape: tuple[int, ...],
-    disc: tuple[float, float, float] | None,
+    disc: Disc | None,
     max_side_px: int,
     fov_diameter_px: int,
 ) -> float:

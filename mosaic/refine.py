@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from mosaic.config import RegistrationConfig
-from mosaic.preprocess import retina_disc
+from mosaic.preprocess import Disc, retina_disc
 from mosaic.registration import RobustFit, apply_homography, apply_quadratic, robust_fit
 
 log = logging.getLogger(__name__)
@@ -304,6 +304,7 @@ def fit_pair(
     start_scale: float,
     config: RegistrationConfig,
     model: str = "homography",
+    discs: tuple[Disc | None, Disc | None] | None = None,
 ) -> tuple[RobustFit, int]:
     """A pair's final transform from its coarse inliers (`xy_moving` -> `xy_fixed`, full
     resolution, found at `start_scale`) and coarse homography: refined through `config.
@@ -313,7 +314,8 @@ def fit_pair(
     `model`: "homography", "quadratic" or "auto" (the quadratic where it pays, as in
     `registration.robust_fit`). The quadratic is fitted in every case: the answer's `H` is
     the homography closest to it over the overlap (`overlap_homography`), the best single
-    homography for a curved retina, and "homography" answers that one alone."""
+    homography for a curved retina, and "homography" answers that one alone. `discs`: the
+    fixed and moving `retina_disc`s, when the caller has them already."""
     inner = "quadratic" if model == "quadratic" else "auto"
     coarse_px = config.reproj_threshold_px / start_scale  # the coarse threshold, full resolution
     fit, levels = None, 0
@@ -336,9 +338,8 @@ def fit_pair(
         fit = robust_fit(xy_moving, xy_fixed, moving.shape[:2], H_moving_to_fixed, coarse_px, inner)
     if fit.model != "quadratic":
         return fit, levels
-    H = overlap_homography(
-        fit.Q, fit.H, moving.shape[:2], fixed.shape[:2], retina_disc(moving), retina_disc(fixed)
-    )
+    disc_fixed, disc_moving = discs or (retina_disc(fixed), retina_disc(moving))
+    H = overlap_homography(fit.Q, fit.H, moving.shape[:2], fixed.shape[:2], disc_moving, disc_fixed)
     answer = "homography" if model == "homography" else "quadratic"
     return RobustFit(H, fit.Q, fit.inliers, answer, fit.rms_px), levels
 
@@ -352,8 +353,8 @@ def overlap_homography(
     H: np.ndarray,
     moving_shape: tuple[int, int],
     fixed_shape: tuple[int, int],
-    moving_disc: tuple[float, float, float] | None,
-    fixed_disc: tuple[float, float, float] | None,
+    moving_disc: Disc | None,
+    fixed_disc: Disc | None,
 ) -> np.ndarray:
     """The homography closest (least squares) to the quadratic `Q` (moving -> fixed) over the
     overlap: where both photographs see the retina (each one's disc without its outer tenth,
