@@ -507,6 +507,9 @@ def _pair_result(
         "model": registration.model if registration.ok else None,
         "working_scale": None if scales is None else {"moving": scales[0], "fixed": scales[1]},
         "refined_levels": registration.refined_levels,
+        "inverted": next(
+            (n for n, i in zip(("moving", "fixed"), registration.inverted, strict=True) if i), None
+        ),
         "n_matches": registration.n_matches,
         "n_inliers": registration.n_inliers,
     }
@@ -613,6 +616,7 @@ def register(
                 extractor,
                 None if H is None else np.array(H),
                 None if Q is None else np.array(Q),
+                (result["inverted"] == "fixed", result["inverted"] == "moving"),
             )
             write_image(matches, picture)
         if as_json:

@@ -42,6 +42,8 @@ class PreprocessConfig:
     # registered with the retina's diameter at this (the detector's training images: 460-640
     # px, median 590), instead of by max_side_px; `mosaic build`: a video whose first readable
     # frame shows a whole retina is also scaled so that it is at most this across (0: off)
+    vessel_polarity: bool = True  # `mosaic register`: an angiogram (bright vessels) paired with a
+    # colour or red-free photograph (dark vessels) is inverted inside its view first
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,8 @@ from mosaic.preprocess import (
     FrameGate,
     OverlayMask,
     Prepared,
+    inverted_as,
+    pair_polarities,
     pair_working_scales,
     prepare,
     resize_by,
@@ -862,10 +864,37 @@ def register_pair(
     Each image is registered at its working size (its retina's diameter at `[preprocess]
     fov_diameter_px` when it shows a whole one, else `max_side_px`; `working_scales`), then
     refined through `[registration] refine_levels` levels up to the full resolution
-    (`refine.refine_pair`); a refinement that loses the matches keeps the coarse answer. With
+    (`refine.refine_pair`); a refinement that loses the matches keeps the coarse answer. A
+    pair of opposite vessel polarities (an angiogram and a colour photograph, `[preprocess]
+    vessel_polarity`) is also registered with the bright-vessel one inverted, and the
+    registration with more inliers answers (`Registration.inverted` says which). With
     "auto", photographs of a whole retina are always refined (homography or quadratic, which
     the working size cannot tell apart); other views keep a simpler coarse model."""
     model = model or config.registration.model
+    invert = pair_polarities(fixed, moving) if config.preprocess.vessel_polarity else (False,) * 2
+    as_is = _register_pair(fixed, moving, config, extractor, model)
+    if not any(invert):
+        return as_is
+    log.info(
+        "vessels of opposite polarity: registered again, the %s image inverted",
+        "fixed" if invert[0] else "moving",
+    )
+    inverted = dataclasses.replace(
+        _register_pair(*inverted_as(fixed, moving, invert), config, extractor, model),
+        inverted=invert[::-1],
+    )
+    registered = [reg for reg in (inverted, as_is) if reg.ok]
+    return max(registered, key=lambda reg: reg.n_inliers) if registered else inverted
+
+
+def _register_pair(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    config: Config,
+    extractor: FeatureExtractor,
+    model: str,
+) -> Registration:
+    """`register_pair` of the two images as they are."""
     pre = config.preprocess
     discs = retina_disc(fixed), retina_disc(moving)  # working sizes, model, overlap
     scale_fixed, scale_moving = pair_working_scales(

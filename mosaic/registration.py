@@ -66,10 +66,12 @@ class Registration:
     coverage: float = float("nan")  # share of the current frame inside the inliers' hull
     corner_sd_px: float = float("nan")  # expected corner error of the chosen model (1 sigma)
     # pairs (`pipeline.register_pair`): the quadratic transform (2x6, `apply_quadratic`) when
-    # the model is "quadratic", each image's working scale, and the refinement's levels
+    # the model is "quadratic", each image's working scale, the refinement's levels, and which
+    # image was inverted so that both show dark vessels (`preprocess.in_one_polarity`)
     Q_cur_to_prev: np.ndarray | None = None
     working_scales: tuple[float, float] | None = None  # (current, reference)
     refined_levels: int = 0
+    inverted: tuple[bool, bool] = (False, False)  # (current, reference) inverted: one polarity
     points: tuple[np.ndarray, np.ndarray] | None = None  # inlier (cur, prev) points
     # how much a homography explains beyond the model (`perspective_evidence`); nan: not asked
     perspective_evidence: float = float("nan")

@@ -205,17 +205,21 @@ def pair_matches_picture(
     extractor: Any,
     H_moving_to_fixed: np.ndarray | None,
     Q_moving_to_fixed: np.ndarray | None = None,
+    inverted: tuple[bool, bool] = (False, False),
 ) -> np.ndarray:
     """`mosaic register --matches`: the pair's keypoints and matches as `register_pair` finds
     them (each image at its working size, mapped to its full-resolution pixels), an inlier
     being a match that the final transform (Q if given, else H; none when failed) carries to
-    within RANSAC's threshold at full resolution; drawn by `draw_pair_matches`."""
+    within RANSAC's threshold at full resolution; drawn by `draw_pair_matches`. `inverted`:
+    (fixed, moving) registered inverted (`Registration.inverted`, reversed)."""
     from mosaic.features import to_frame_pixels
     from mosaic.matching import match_descriptors
-    from mosaic.preprocess import pair_working_scales, prepare, resize_by
+    from mosaic.preprocess import inverted_as, pair_working_scales, prepare, resize_by
     from mosaic.registration import apply_homography, apply_quadratic
 
     pre = config.preprocess
+    shown = fixed, moving
+    fixed, moving = inverted_as(fixed, moving, inverted)
     xys, scales = [], []
     descriptors = []
     pair_scales = pair_working_scales(fixed, moving, pre.max_side_px, pre.fov_diameter_px)
@@ -236,7 +240,7 @@ def pair_matches_picture(
             mapped = apply_homography(np.asarray(H_moving_to_fixed), b)
         error = np.linalg.norm(mapped - a, axis=1)
         inliers = error <= config.registration.reproj_threshold_px / min(scales)
-    return draw_pair_matches(fixed, moving, *xys, matches.idx_a, matches.idx_b, inliers)
+    return draw_pair_matches(*shown, *xys, matches.idx_a, matches.idx_b, inliers)
 
 
 def config_toml(tables: Mapping[str, Mapping[str, Any]]) -> str:

@@ -575,3 +575,47 @@ def test_auto_refines_photographs_of_a_whole_retina_whatever_the_coarse_model(
     cp = pair.control_points
     error = np.linalg.norm(apply_quadratic(reg.Q_cur_to_prev, cp[:, 2:]) - cp[:, :2], axis=1)
     assert error.mean() < 1.0, error
+
+
+@pytest.mark.parametrize("vessel_polarity", [True, False])
+def test_an_angiogram_is_registered_to_a_colour_photograph_once_inverted(
+    vessel_polarity, monkeypatch
+):
+    """A follow-up pair whose moving photograph has bright vessels (an angiogram's polarity:
+    here the colour photograph's negative inside its view) is registered within a pixel of the
+    exact truth once that photograph is inverted; without the inversion its descriptors do not
+    match the colour photograph's and the pair fails or is placed wildly. Two photographs of
+    one kind are registered once, as they are."""
+    from mosaic import pipeline
+    from mosaic.curved import curved_pair
+    from mosaic.features import FeatureExtractor
+    from mosaic.preprocess import invert_in_view
+    from mosaic.registration import apply_homography, apply_quadratic
+
+    pair = curved_pair(cv2.imread(str(SAMPLE_IMAGE)), seed=3, size=1024)
+    angiogram = invert_in_view(pair.moving)
+    config = with_overrides(
+        Config(), features={"detector": "sift"}, preprocess={"vessel_polarity": vessel_polarity}
+    )
+    extractor = FeatureExtractor(config.features)
+    reg = pipeline.register_pair(pair.fixed, angiogram, config, extractor, "auto")
+    cp = pair.control_points
+    if not vessel_polarity:
+        if reg.ok:
+            error = np.linalg.norm(apply_homography(reg.H_cur_to_prev, cp[:, 2:]) - cp[:, :2], 1)
+            assert error.mean() > 10.0
+        assert reg.inverted == (False, False)
+        return
+    assert reg.ok and reg.inverted == (True, False)  # (moving, fixed)
+    calls = []
+    register_once = pipeline._register_pair
+    monkeypatch.setattr(pipeline, "_register_pair", lambda *a: calls.append(a) or register_once(*a))
+    same_kind = pipeline.register_pair(pair.fixed, pair.moving, config, extractor, "auto")
+    assert same_kind.ok and same_kind.inverted == (False, False) and len(calls) == 1
+    mapped = (
+        apply_quadratic(reg.Q_cur_to_prev, cp[:, 2:])
+        if reg.Q_cur_to_prev is not None
+        else apply_homography(reg.H_cur_to_prev, cp[:, 2:])
+    )
+    error = np.linalg.norm(mapped - cp[:, :2], axis=1)
+    assert error.mean() < 1.0, error

@@ -8,9 +8,13 @@ from mosaic.preprocess import (
     OverlayMask,
     erode_by_disc,
     field_of_view_mask,
+    invert_in_view,
+    inverted_as,
+    pair_polarities,
     prepare,
     retina_disc,
     to_working_size,
+    vessel_polarity,
     working_scale,
 )
 
@@ -253,3 +257,26 @@ def test_erode_by_disc_keeps_what_lies_that_far_inside_the_mask(radius):
         assert kept[distance >= radius + 1.0].all()
     assert (erode_by_disc(mask, 0) == mask).all()
     assert erode_by_disc(np.full((h, w), 255, np.uint8), radius).all()
+
+
+def test_vessel_polarity_tells_a_colour_photograph_from_its_negative():
+    """The shipped colour photograph shows dark vessels (polarity above 1); its negative inside
+    the view (an angiogram's bright vessels) below 1. Only a pair of opposite polarities is
+    inverted, and then the bright-vessel one; the black border stays black."""
+    from tests.conftest import SAMPLE_IMAGE
+
+    photo = cv2.imread(str(SAMPLE_IMAGE), cv2.IMREAD_COLOR)
+    negative = invert_in_view(photo)
+    assert vessel_polarity(photo) > 1.15 and vessel_polarity(negative) < 0.85
+    h, w = photo.shape[:2]
+    assert negative[:5, :5].max() <= photo[:5, :5].max()  # the border is not made white
+    centre = photo[h // 2 - 5 : h // 2 + 5, w // 2 - 5 : w // 2 + 5]
+    assert np.array_equal(negative[h // 2 - 5 : h // 2 + 5, w // 2 - 5 : w // 2 + 5], 255 - centre)
+    assert pair_polarities(photo, photo) == (False, False)
+    assert pair_polarities(negative, negative) == (False, False)
+    assert pair_polarities(photo, negative) == (False, True)
+    assert pair_polarities(negative, photo) == (True, False)
+    fixed, moving = inverted_as(photo, negative, (False, True))
+    assert fixed is photo
+    inside = field_of_view_mask(photo[:, :, 1], 15, 0) > 0
+    assert np.array_equal(moving[inside], photo[inside])  # the negative made positive again
