@@ -43,7 +43,7 @@ class PreprocessConfig:
     # px, median 590), instead of by max_side_px; `mosaic build`: a video whose first readable
     # frame shows a whole retina is also scaled so that it is at most this across (0: off)
     vessel_polarity: bool = True  # `mosaic register`: an angiogram (bright vessels) paired with a
-    # colour or red-free photograph (dark vessels) is inverted inside its view first
+    # colour or red-free photograph (dark vessels) is also registered inverted in its view
 
 
 @dataclass(frozen=True)

@@ -67,7 +67,7 @@ class Registration:
     corner_sd_px: float = float("nan")  # expected corner error of the chosen model (1 sigma)
     # pairs (`pipeline.register_pair`): the quadratic transform (2x6, `apply_quadratic`) when
     # the model is "quadratic", each image's working scale, the refinement's levels, and which
-    # image was inverted so that both show dark vessels (`preprocess.in_one_polarity`)
+    # image was inverted so that both show dark vessels (`[preprocess] vessel_polarity`)
     Q_cur_to_prev: np.ndarray | None = None
     working_scales: tuple[float, float] | None = None  # (current, reference)
     refined_levels: int = 0

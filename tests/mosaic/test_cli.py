@@ -271,6 +271,20 @@ def test_register_curved_pair_prints_the_quadratic_and_warps(tmp_path):
     np.testing.assert_allclose(H, np.array(out["H_moving_to_fixed"]), rtol=1e-6, atol=1e-9)
     err_h = np.linalg.norm(cv2.perspectiveTransform(cp[None, :, 2:], H)[0] - cp[:, :2], axis=1)
     assert err.mean() < err_h.mean() / 2
+    assert out["inverted"] is None  # two colour photographs: registered as they are
+    # the moving photograph as an angiogram (its negative in the view): registered inverted
+    from mosaic.preprocess import invert_in_view
+
+    cv2.imwrite(str(moving), invert_in_view(pair.moving))
+    picture = tmp_path / "matches.png"
+    args = ["register", str(fixed), str(moving), "--json", "--matches", str(picture)]
+    angio = json.loads(CliRunner().invoke(app, args).output)
+    assert angio["status"] == "registered" and angio["inverted"] == "moving"
+    err_a = np.linalg.norm(
+        apply_quadratic(np.array(angio["Q_moving_to_fixed"]), cp[:, 2:]) - cp[:, :2], axis=1
+    )
+    assert err_a.mean() < 1.0
+    assert cv2.imread(str(picture)) is not None
 
 
 def test_register_pair_without_overlap_fails_with_a_clear_status(tmp_path):
