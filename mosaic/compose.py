@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from mosaic.blending import LaplacianBlender
+from mosaic.blending import LaplacianBlender, shrink_noise
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
 from mosaic.photometry import (
@@ -206,6 +206,15 @@ class Canvas:
             r1 = min(r0 + RENDER_ROWS, out.shape[0])
             out[r0:r1] = self._render_rows(sum_c[r0:r1], weight_c[r0:r1], r0)
         return out
+
+    def picture(self) -> np.ndarray:
+        """The mosaic as written and reported: `render`, with `denoise` the noise the blend
+        left shrunk (`blending.shrink_noise`: the finest band where it is near the noise)."""
+        image = self.render()
+        if not self._config.denoise:
+            return image
+        _, weight_c = self._content_views()
+        return shrink_noise(image, weight_c > 0, RENDER_ROWS)
 
     def _render_rows(self, sum_c: np.ndarray, weight_c: np.ndarray, r0: int) -> np.ndarray:
         """uint8 rows of `render` from the content's rows r0 .. r0 + len(`sum_c`)."""

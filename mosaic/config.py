@@ -109,6 +109,8 @@ class ComposeConfig:
     flatfield: bool = True  # divide out the vignetting profile estimated from the frames
     sharpness_weighting: bool = True  # weight frames by local sharpness, glare, border distance
     side_bands: bool = True  # leave frame-fixed side bands without retina out of the mosaic
+    denoise: bool = True  # shrink the mosaic's finest band where it is near the noise level
+    # (local Wiener): the frames' noise that blending left, not the vessels' edges
     quality_threshold: float = 0.4  # a frame agreeing less with the mosaic under it (NCC of
     # band-passed green, mosaic.quality) is flagged in the report as likely misregistered
 

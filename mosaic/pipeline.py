@@ -683,7 +683,7 @@ class MosaicBuilder:
         """The segment canvases as they are and the report so far (no refinement, the viewer
         not told): what `finish` renders, and a run's periodic checkpoint."""
         mosaics = [
-            SegmentMosaic(s.index, s.canvas.render(), s.canvas.H_ref_to_canvas, s.canvas.n_frames)
+            SegmentMosaic(s.index, s.canvas.picture(), s.canvas.H_ref_to_canvas, s.canvas.n_frames)
             for s in self._segments
             if s.canvas.n_frames
         ]

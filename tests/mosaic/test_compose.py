@@ -477,3 +477,57 @@ def test_render_needs_no_float_image_of_the_whole_canvas(blend: str) -> None:
     strip = 2400 * 256 * 4 * 3  # one float32 strip of RENDER_ROWS rows
     # measured: the image + 3.4 strips (multiband), + 1.3 (feather); before: + 25.5 and 6.8
     assert peak < image.nbytes + 5 * strip, (peak - image.nbytes) / strip
+
+
+def _noisy_vessels(sigma: float = 6.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A vessel-like pattern (thin bright and dark lines, a dark disc) with Gaussian noise:
+    (noisy BGR uint8, clean float32 grey, content mask with an empty band on the left)."""
+    h, w = 300, 400
+    yy, xx = np.mgrid[:h, :w]
+    lines = np.abs(((xx + 0.3 * yy) % 40) - 20) < 2.5
+    clean = 120.0 + 60 * lines - 50 * (np.hypot(xx - 200, yy - 150) < 40)
+    clean = cv2.GaussianBlur(clean.astype(np.float32), (0, 0), 1.0)
+    noisy = clean + np.random.default_rng(0).normal(0, sigma, clean.shape)
+    image = np.dstack([np.clip(noisy, 0, 255).astype(np.uint8)] * 3)
+    content = np.ones((h, w), bool)
+    content[:, :30] = False
+    image[~content] = 0
+    return image, clean, content
+
+
+def test_shrink_noise_smooths_the_noise_and_keeps_the_vessels():
+    """The noise blending left (sigma 6 here) is more than halved and a vessel keeps its
+    contrast to within 8 %: both better than a Gaussian blur of the band's sigma (rms 2.78,
+    contrast -9 %; measured 2.66 and -7 %). The empty canvas stays empty, and the strips add up
+    to the whole."""
+    from mosaic.blending import shrink_noise
+
+    image, clean, content = _noisy_vessels()
+    out = shrink_noise(image, content, rows=64)
+    inner = content.copy()
+    inner[:, :40] = False  # the edge of the content
+    blurred = cv2.GaussianBlur(image, (0, 0), 1.0)
+    images = (image, out, blurred)
+    rms = [np.sqrt(((im[..., 1] - clean.astype(float))[inner] ** 2).mean()) for im in images]
+    assert rms[1] < 0.5 * rms[0] and rms[1] < rms[2], rms
+    vessel, background = (clean > 170) & inner, (np.abs(clean - 120) < 1) & inner
+    contrast = [float(im[..., 1][vessel].mean() - im[..., 1][background].mean()) for im in images]
+    truth = clean[vessel].mean() - clean[background].mean()
+    assert abs(contrast[1] / truth - 1) < 0.08 and contrast[1] > contrast[2], (contrast, truth)
+    assert out[~content].max() == 0
+    np.testing.assert_array_equal(out, shrink_noise(image, content, rows=10_000))
+
+
+def test_canvas_picture_is_the_render_denoised_only_when_asked():
+    image, _, _ = _noisy_vessels()
+    H = np.eye(3)
+    pictures = {}
+    for denoise in (False, True):
+        canvas = Canvas(ComposeConfig(blend="feather", denoise=denoise))
+        canvas.add(image, H)
+        pictures[denoise] = canvas.picture()
+        np.testing.assert_array_equal(canvas.render(), pictures[False])  # render stays exact
+    smoother = [
+        cv2.Laplacian(p[..., 1], cv2.CV_32F)[50:-50, 80:-50].std() for p in pictures.values()
+    ]
+    assert smoother[1] < 0.7 * smoother[0]
