@@ -174,54 +174,57 @@ class LaplacianBlender:
 # -- the noise blending leaves ---------------------------------------------------------------
 DENOISE_SIGMA_PX = 1.0  # the finest band: the mosaic minus its Gaussian blur of this sigma
 DENOISE_WINDOW_PX = 7  # the band's local energy is its mean square over this window
+DENOISE_QUIET_PERCENTILE = 10.0  # the noise level: the energy of the mosaic's quietest places ...
+DENOISE_QUIET_SHARE = 0.735  # ... which for noise alone is this share of its variance (measured)
 _DENOISE_HALO = 8  # rows a strip reads beyond its own: 3 sigma of the blur + half the window
-_MAD_TO_SD = 1.4826  # robust spread: sd of Gaussian noise = 1.4826 x median absolute value
 
 
-def _finest_band(strip: np.ndarray, inside: np.ndarray) -> np.ndarray:
-    """float32 strip minus its Gaussian blur taken over the content only (`inside`), so the
-    empty canvas around the content is not taken for detail at its edge."""
+def _band_energy(strip: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The finest band of a strip (float32: the strip minus its Gaussian blur, both over the
+    content only, so the empty canvas is not taken for detail at the content's edge) and its
+    local energy (mean square over `DENOISE_WINDOW_PX`, over the content only)."""
     m = inside.astype(np.float32)
-    x = strip.astype(np.float32) * (m[..., None] if strip.ndim == 3 else m)
-    num = cv2.GaussianBlur(x, (0, 0), DENOISE_SIGMA_PX)
-    den = cv2.GaussianBlur(m, (0, 0), DENOISE_SIGMA_PX)
-    den = np.maximum(den, 1e-6)
-    return x - num / (den[..., None] if strip.ndim == 3 else den)
+    mc = m[..., None] if strip.ndim == 3 else m
+    x = strip.astype(np.float32) * mc
+    low = cv2.GaussianBlur(x, (0, 0), DENOISE_SIGMA_PX)
+    den = np.maximum(cv2.GaussianBlur(m, (0, 0), DENOISE_SIGMA_PX), 1e-6)
+    band = (x - low / (den[..., None] if strip.ndim == 3 else den)) * mc
+    window = (DENOISE_WINDOW_PX, DENOISE_WINDOW_PX)
+    share = np.maximum(cv2.boxFilter(m, -1, window), 1e-6)
+    energy = cv2.boxFilter(band * band, -1, window) / (
+        share[..., None] if strip.ndim == 3 else share
+    )
+    return band, energy
 
 
 def shrink_noise(image: np.ndarray, content: np.ndarray, rows: int = 256) -> np.ndarray:
     """The mosaic (uint8 HxW[xC]) with the noise its frames left shrunk: its finest band
-    (`DENOISE_SIGMA_PX`) multiplied by the local Wiener gain max(0, 1 - noise² / energy), the
-    noise level being the band's robust spread over the `content` (bool HxW) per channel. Where
-    vessels and edges make the band's local energy well above the noise they stay as they
+    (`DENOISE_SIGMA_PX`) multiplied by the local Wiener gain max(0, 1 - noise² / energy).
+    Where vessels and edges make the band's local energy well above the noise they stay as they
     are; where the band is mostly noise (a place few frames averaged, a magnified view whose
-    pixels are finer than its optics) it is smoothed. In strips of `rows` rows: no float image
-    of the whole mosaic."""
+    pixels are finer than its optics) it is smoothed. The noise level (per channel) is read
+    from the quietest places of the `content` (bool HxW): the 10th percentile of the energy, so
+    that a texture covering the whole mosaic (an adaptive-optics or SLO view of photoreceptors)
+    is not taken for noise, as a median over all places would. In strips of `rows` rows: no
+    float image of the whole mosaic."""
     h = image.shape[0]
     if not content.any():
         return image
-    # the noise level of each channel, from every 4th row of the band
-    samples = []
-    for r0 in range(0, h, rows):
-        r1 = min(r0 + rows, h)
-        a, b = max(r0 - _DENOISE_HALO, 0), min(r1 + _DENOISE_HALO, h)
-        band = _finest_band(image[a:b], content[a:b])[r0 - a : r1 - a : 4]
-        samples.append(band[content[r0:r1:4]])
-    noise = np.median(np.abs(np.concatenate(samples)), axis=0) * _MAD_TO_SD
+
+    def strips():
+        for r0 in range(0, h, rows):
+            r1 = min(r0 + rows, h)
+            a, b = max(r0 - _DENOISE_HALO, 0), min(r1 + _DENOISE_HALO, h)
+            band, energy = _band_energy(image[a:b], content[a:b])
+            yield r0, r1, a, band[r0 - a : r1 - a], energy[r0 - a : r1 - a]
+
+    samples = [energy[::4][content[r0:r1:4]] for r0, r1, _, _, energy in strips()]
+    quiet = np.percentile(np.concatenate(samples), DENOISE_QUIET_PERCENTILE, axis=0)
+    noise2 = quiet / DENOISE_QUIET_SHARE
     out = image.copy()
-    window = (DENOISE_WINDOW_PX, DENOISE_WINDOW_PX)
-    for r0 in range(0, h, rows):
-        r1 = min(r0 + rows, h)
-        a, b = max(r0 - _DENOISE_HALO, 0), min(r1 + _DENOISE_HALO, h)
-        band = _finest_band(image[a:b], content[a:b])
-        energy = cv2.boxFilter(band * band, -1, window)
-        gain = np.clip(1.0 - noise**2 / np.maximum(energy, 1e-6), 0.0, 1.0)
-        smoothed = image[a:b].astype(np.float32) - band * (1.0 - gain)
-        inner = slice(r0 - a, r1 - a)
-        np.clip(np.rint(smoothed[inner]), 0, 255, out=smoothed[inner])
-        np.copyto(
-            out[r0:r1],
-            smoothed[inner].astype(np.uint8),
-            where=(content[r0:r1][..., None] if image.ndim == 3 else content[r0:r1]),
-        )
+    for r0, r1, _, band, energy in strips():
+        gain = np.clip(1.0 - noise2 / np.maximum(energy, 1e-6), 0.0, 1.0)
+        smoothed = np.rint(image[r0:r1].astype(np.float32) - band * (1.0 - gain))
+        inside = content[r0:r1][..., None] if image.ndim == 3 else content[r0:r1]
+        np.copyto(out[r0:r1], np.clip(smoothed, 0, 255).astype(np.uint8), where=inside)
     return out
