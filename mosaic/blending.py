@@ -216,13 +216,13 @@ def shrink_noise(image: np.ndarray, content: np.ndarray, rows: int = 256) -> np.
             r1 = min(r0 + rows, h)
             a, b = max(r0 - _DENOISE_HALO, 0), min(r1 + _DENOISE_HALO, h)
             band, energy = _band_energy(image[a:b], content[a:b])
-            yield r0, r1, a, band[r0 - a : r1 - a], energy[r0 - a : r1 - a]
+            yield r0, r1, band[r0 - a : r1 - a], energy[r0 - a : r1 - a]
 
-    samples = [energy[::4][content[r0:r1:4]] for r0, r1, _, _, energy in strips()]
+    samples = [energy[::4][content[r0:r1:4]] for r0, r1, _, energy in strips()]  # every 4th row
     quiet = np.percentile(np.concatenate(samples), DENOISE_QUIET_PERCENTILE, axis=0)
     noise2 = quiet / DENOISE_QUIET_SHARE
     out = image.copy()
-    for r0, r1, _, band, energy in strips():
+    for r0, r1, band, energy in strips():
         gain = np.clip(1.0 - noise2 / np.maximum(energy, 1e-6), 0.0, 1.0)
         smoothed = np.rint(image[r0:r1].astype(np.float32) - band * (1.0 - gain))
         inside = content[r0:r1][..., None] if image.ndim == 3 else content[r0:r1]
