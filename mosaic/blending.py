@@ -184,17 +184,17 @@ def _band_energy(strip: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray, np.
     content only, so the empty canvas is not taken for detail at the content's edge) and its
     local energy (mean square over `DENOISE_WINDOW_PX`, over the content only)."""
     m = inside.astype(np.float32)
-    mc = m[..., None] if strip.ndim == 3 else m
-    x = strip.astype(np.float32) * mc
+
+    def per_channel(a: np.ndarray) -> np.ndarray:  # an HxW map against the strip's channels
+        return a[..., None] if strip.ndim == 3 else a
+
+    x = strip.astype(np.float32) * per_channel(m)
     low = cv2.GaussianBlur(x, (0, 0), DENOISE_SIGMA_PX)
     den = np.maximum(cv2.GaussianBlur(m, (0, 0), DENOISE_SIGMA_PX), 1e-6)
-    band = (x - low / (den[..., None] if strip.ndim == 3 else den)) * mc
+    band = (x - low / per_channel(den)) * per_channel(m)
     window = (DENOISE_WINDOW_PX, DENOISE_WINDOW_PX)
     share = np.maximum(cv2.boxFilter(m, -1, window), 1e-6)
-    energy = cv2.boxFilter(band * band, -1, window) / (
-        share[..., None] if strip.ndim == 3 else share
-    )
-    return band, energy
+    return band, cv2.boxFilter(band * band, -1, window) / per_channel(share)
 
 
 def shrink_noise(image: np.ndarray, content: np.ndarray, rows: int = 256) -> np.ndarray:

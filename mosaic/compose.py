@@ -213,8 +213,7 @@ class Canvas:
         image = self.render()
         if not self._config.denoise:
             return image
-        _, weight_c = self._content_views()
-        return shrink_noise(image, weight_c > 0, RENDER_ROWS)
+        return shrink_noise(image, self.coverage() > 0, RENDER_ROWS)
 
     def _render_rows(self, sum_c: np.ndarray, weight_c: np.ndarray, r0: int) -> np.ndarray:
         """uint8 rows of `render` from the content's rows r0 .. r0 + len(`sum_c`)."""
