@@ -319,6 +319,7 @@ def fit_pair(
     inner = "quadratic" if model == "quadratic" else "auto"
     coarse_px = config.reproj_threshold_px / start_scale  # the coarse threshold, full resolution
     fit, levels = None, 0
+    matched = xy_moving, xy_fixed  # the matches the final fit saw
     if config.refine_levels > 0:
         refined = refine_pair(
             fixed,
@@ -332,6 +333,7 @@ def fit_pair(
         )
         if refined is not None and refined.fit.inliers.sum() >= config.min_inliers:
             fit, levels = refined.fit, refined.levels
+            matched = refined.xy_moving, refined.xy_fixed
         else:
             log.info("refinement kept too few matches: the coarse registration stands")
     if fit is None:
@@ -340,8 +342,11 @@ def fit_pair(
         return fit, levels
     disc_fixed, disc_moving = discs or (retina_disc(fixed), retina_disc(moving))
     H = overlap_homography(fit.Q, fit.H, moving.shape[:2], fixed.shape[:2], disc_moving, disc_fixed)
-    answer = "homography" if model == "homography" else "quadratic"
-    return RobustFit(H, fit.Q, fit.inliers, answer, fit.rms_px), levels
+    if model != "homography":
+        return RobustFit(H, fit.Q, fit.inliers, "quadratic", fit.rms_px), levels
+    a, b = (xy[fit.inliers] for xy in matched)  # the homography's own residual on them
+    rms = float(np.sqrt(np.mean(np.sum((apply_homography(H, a) - b) ** 2, axis=1))))
+    return RobustFit(H, fit.Q, fit.inliers, "homography", rms), levels
 
 
 OVERLAP_SHRINK = 0.9  # the retina's outer tenth (dim, little matched) is left out of the overlap

@@ -218,3 +218,28 @@ def test_matches_a_level_cannot_place_keep_their_place_from_the_level_before(pai
     error = np.linalg.norm(apply_quadratic(refined.fit.Q, xy) - truth, axis=1)
     right = xy[:, 0] > 600
     assert error[~right].mean() < 0.1 and error[right].mean() < 0.28, error[right].mean()
+
+
+def test_each_answer_reports_its_own_residual(pair):
+    """A curved pair: the homography answer reports the homography's RMS on the matches (the
+    curvature's several pixels), the quadratic answer its own (well under one), each equal to
+    the residual computed from the answer and the truth."""
+    from mosaic.config import RegistrationConfig
+    from mosaic.refine import fit_pair
+
+    xy, truth = _points(pair, n=200)
+    H0, _ = cv2.findHomography(xy, truth, 0)
+    config = RegistrationConfig(refine_levels=0)
+    disc = (511.5, 511.5, 0.94 * 511.5)
+    rms = {}
+    for model in ("homography", "quadratic"):
+        fit, _ = fit_pair(pair.fixed, pair.moving, xy, truth, H0, 1.0, config, model, (disc, disc))
+        assert fit.model == model
+        if model == "homography":
+            mapped = apply_homography(fit.H, xy)
+        else:
+            mapped = apply_quadratic(fit.Q, xy)
+        err = np.linalg.norm(mapped - truth, axis=1)[fit.inliers]
+        assert fit.rms_px == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-6)
+        rms[model] = fit.rms_px
+    assert rms["homography"] > 1.0 and rms["quadratic"] < 0.2 * rms["homography"], rms
