@@ -512,6 +512,11 @@ def _pair_result(
         ),
         "n_matches": registration.n_matches,
         "n_inliers": registration.n_inliers,
+        "residual_px": (
+            round(float(registration.reproj_error_px), 3)
+            if registration.ok and np.isfinite(registration.reproj_error_px)
+            else None
+        ),
     }
 
 
@@ -632,6 +637,7 @@ def _print_pair(result: dict[str, Any]) -> None:
     typer.echo(f"status: {result['status']}" + (f" ({result['reason']})" * bool(result["reason"])))
     typer.echo(
         f"model: {result['model']}  matches: {result['n_matches']}  inliers: {result['n_inliers']}"
+        + (f"  residual: {result['residual_px']:.2f} px" * (result["residual_px"] is not None))
     )
     if result["working_scale"] is not None:
         s = result["working_scale"]

@@ -926,7 +926,8 @@ def _register_pair(
     if reg.H_cur_to_prev is None:
         return reg
     H = np.linalg.inv(S_fixed) @ reg.H_cur_to_prev @ S_moving
-    reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2])
+    error_px = reg.reproj_error_px / scales[1]  # measured in the fixed working image
+    reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2], reproj_error_px=error_px)
     if model not in ("homography", "quadratic", "auto"):
         return reg  # a simpler model was asked for: nothing to refine it towards
     if model == "auto" and reg.model != "homography" and discs[1] is None:
@@ -950,5 +951,5 @@ def _register_pair(
         Q_cur_to_prev=fit.Q if fit.model == "quadratic" else None,
         model=fit.model,
         refined_levels=levels_done,
-        reproj_error_px=fit.rms_px,
+        reproj_error_px=fit.error_px,
     )

@@ -289,7 +289,7 @@ def refine_pair(
         H = fit.H
         inliers = np.zeros(len(xy_moving), bool)
         inliers[np.flatnonzero(use)[fit.inliers]] = True
-        fit = RobustFit(fit.H, fit.Q, inliers, fit.model, fit.rms_px)
+        fit = RobustFit(fit.H, fit.Q, inliers, fit.model, fit.error_px)
         done = Refined(fit, xy_moving, placed.copy(), np.where(use, weight, 0.0), level)
         previous = scale
     return done
@@ -343,10 +343,10 @@ def fit_pair(
     disc_fixed, disc_moving = discs or (retina_disc(fixed), retina_disc(moving))
     H = overlap_homography(fit.Q, fit.H, moving.shape[:2], fixed.shape[:2], disc_moving, disc_fixed)
     if model != "homography":
-        return RobustFit(H, fit.Q, fit.inliers, "quadratic", fit.rms_px), levels
+        return RobustFit(H, fit.Q, fit.inliers, "quadratic", fit.error_px), levels
     a, b = (xy[fit.inliers] for xy in matched)  # the homography's own residual on them
-    rms = float(np.sqrt(np.mean(np.sum((apply_homography(H, a) - b) ** 2, axis=1))))
-    return RobustFit(H, fit.Q, fit.inliers, "homography", rms), levels
+    error = float(np.mean(np.linalg.norm(apply_homography(H, a) - b, axis=1)))
+    return RobustFit(H, fit.Q, fit.inliers, "homography", error), levels
 
 
 OVERLAP_SHRINK = 0.9  # the retina's outer tenth (dim, little matched) is left out of the overlap

@@ -546,7 +546,7 @@ class RobustFit:
     Q: np.ndarray  # 2x6, the best quadratic
     inliers: np.ndarray  # (N,) bool, of the chosen model
     model: str  # "homography" or "quadratic"
-    rms_px: float  # RMS residual of the chosen model on its inliers
+    error_px: float  # mean residual (px) of the chosen model on its inliers
 
 
 def robust_fit(
@@ -626,5 +626,5 @@ def robust_fit(
             if (rss_h - rss_q) / sigma2 > extra + ADEQUATE_Z * np.sqrt(2 * extra):
                 chosen = "quadratic"
     inl, err = (q_inl, q_err) if chosen == "quadratic" else (h_inl, h_err)
-    rms = float(np.sqrt(np.mean(err[inl] ** 2)) / T[0, 0]) if inl.any() else float("nan")
-    return RobustFit(H, Q, inl, chosen, rms)
+    mean = float(np.mean(err[inl]) / T[0, 0]) if inl.any() else float("nan")
+    return RobustFit(H, Q, inl, chosen, mean)

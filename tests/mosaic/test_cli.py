@@ -271,6 +271,8 @@ def test_register_curved_pair_prints_the_quadratic_and_warps(tmp_path):
     np.testing.assert_allclose(H, np.array(out["H_moving_to_fixed"]), rtol=1e-6, atol=1e-9)
     err_h = np.linalg.norm(cv2.perspectiveTransform(cp[None, :, 2:], H)[0] - cp[:, :2], axis=1)
     assert err.mean() < err_h.mean() / 2
+    # each answer's residual on its inliers: the curvature shows in the homography's
+    assert 0 < out["residual_px"] < 1.0 and only["residual_px"] > 2 * out["residual_px"]
     assert out["inverted"] is None  # two colour photographs: registered as they are
     # the moving photograph as an angiogram (its negative in the view): registered inverted
     from mosaic.preprocess import invert_in_view
