@@ -233,6 +233,13 @@ def evaluate(
     config: Annotated[
         Path | None, typer.Option("--config", "-c", help="mosaic TOML config (pipeline stages)")
     ] = None,
+    answers: Annotated[
+        Path | None,
+        typer.Option(
+            help="FIRE: score the JSON lines of `mosaic register --pairs` at the control points "
+            "instead of registering (the answer and H_moving_to_fixed)"
+        ),
+    ] = None,
     verbose: Annotated[bool, typer.Option("-v", "--verbose")] = False,
 ) -> None:
     """Compare detectors on image pairs with the paper's metrics and the FIRE protocol."""
@@ -252,6 +259,9 @@ def evaluate(
     from mosaic.features import FeatureExtractor
 
     _setup_logging(verbose)
+    if answers is not None:
+        _score_answers(dataset, fmt, answers, out)
+        return
     try:
         with logging_redirect_tqdm():
             names = parse_detectors(detector)
@@ -274,6 +284,27 @@ def evaluate(
         _fail(str(exc))
     typer.echo(format_pair_tables(summary, summarize_models(results)))
     typer.echo(f"tables and plots: {out}")
+
+
+def _score_answers(dataset: Path, fmt: str | None, answers: Path, out: Path) -> None:
+    """`evaluate --answers`: the FIRE protocol of `mosaic register --pairs` answers."""
+    from mosaic.errors import MosaicError
+    from mosaic.evaluate import (
+        format_answer_table,
+        read_answers,
+        score_answers,
+        write_answer_tables,
+    )
+
+    if fmt not in (None, "fire"):
+        _fail(f"--answers scores FIRE pairs, not --format {fmt}")
+    try:
+        rows, summary = score_answers(dataset, read_answers(answers))
+        write_answer_tables(rows, summary, out)
+    except MosaicError as exc:
+        _fail(str(exc))
+    typer.echo(format_answer_table(summary))
+    typer.echo(f"tables: {out}")
 
 
 def main() -> None:

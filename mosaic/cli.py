@@ -589,8 +589,11 @@ def register(
         config = _config(config_path, detector)
         extractor = FeatureExtractor(config.features)
         if pairs is not None:
+            from tqdm import tqdm
+
             failed = 0
-            for pair in _read_pairs(pairs):
+            rows = _read_pairs(pairs)
+            for pair in tqdm(rows, unit="pair", desc="register", file=sys.stderr):
                 if isinstance(pair, str):  # a malformed row: one failed line, go on
                     result = {"status": "failed", "reason": pair}
                 else:
@@ -603,7 +606,10 @@ def register(
                         reason = f"internal error: {_one_line(exc)}"
                         result = {**_pair_names(*pair), "status": "failed", "reason": reason}
                 failed += result["status"] != "registered"
-                typer.echo(json.dumps(result))
+                tqdm.write(json.dumps(result), file=sys.stdout)  # above the bar on a terminal
+            typer.echo(
+                f"{len(rows)} pairs: {len(rows) - failed} registered, {failed} failed", err=True
+            )
             if failed:
                 raise typer.Exit(1)
             return

@@ -92,17 +92,32 @@ def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
 _FIRE_GT = re.compile(r"control_points_(\w+?)_1_2\.txt$")
 
 
-def load_fire(root: Path) -> PairDataset:
-    """The FIRE layout: `Images/` and `Ground Truth/control_points_XNN_1_2.txt`."""
+def fire_truth(root: Path) -> list[tuple[str, Path]]:
+    """(pair name, control-point file) of each pair of a FIRE folder (`Images/` and
+    `Ground Truth/control_points_XNN_1_2.txt`), in natural order."""
     images, truth = root / "Images", root / "Ground Truth"
     if not images.is_dir() or not truth.is_dir():
         raise InputError(f"{root} is not a FIRE folder (needs 'Images/' and 'Ground Truth/')")
+    found = [
+        (m.group(1), gt)
+        for gt in sorted(truth.iterdir(), key=lambda p: natural_key(p.name))
+        if (m := _FIRE_GT.match(gt.name)) is not None
+    ]
+    if not found:
+        raise InputError(f"no control_points_*_1_2.txt files in {truth}")
+    return found
+
+
+def fire_category(name: str) -> str:
+    """FIRE's category of a pair (S, P or A: the name's first letter), "" for others."""
+    return name[0].upper() if name[:1].upper() in FIRE_CATEGORIES else ""
+
+
+def load_fire(root: Path) -> PairDataset:
+    """The FIRE layout: `Images/` and `Ground Truth/control_points_XNN_1_2.txt`."""
+    images = root / "Images"
     names, loaders = [], []
-    for gt in sorted(truth.iterdir(), key=lambda p: natural_key(p.name)):
-        m = _FIRE_GT.match(gt.name)
-        if m is None:
-            continue
-        name = m.group(1)
+    for name, gt in fire_truth(root):
         first = [images / f"{name}_1{s}" for s in (".jpg", ".png", ".tif", ".jpeg")]
         found = [p for p in first if p.is_file()]
         if not found:
@@ -111,16 +126,13 @@ def load_fire(root: Path) -> PairDataset:
         path2 = path1.with_name(f"{name}_2{path1.suffix}")
         names.append(name)
         loaders.append(_fire_loader(name, path1, path2, gt))
-    if not names:
-        raise InputError(f"no control_points_*_1_2.txt files in {truth}")
     return PairDataset(root, "fire", tuple(names), tuple(loaders))
 
 
 def _fire_loader(name: str, path1: Path, path2: Path, gt: Path) -> Callable[[], Pair]:
     def load() -> Pair:
         points = read_matrix(gt, (-1, 4))
-        category = name[0].upper() if name[:1].upper() in FIRE_CATEGORIES else ""
-        return Pair(name, category, read_image(path1), read_image(path2), None, points)
+        return Pair(name, fire_category(name), read_image(path1), read_image(path2), None, points)
 
     return load
 

@@ -44,7 +44,14 @@ from tqdm import tqdm
 from glampoints import metrics as gm
 from glampoints.detector import WeightsError
 from mosaic.config import Config, RegistrationConfig, with_overrides
-from mosaic.datasets import FIRE_CATEGORIES, Pair, PairDataset
+from mosaic.datasets import (
+    FIRE_CATEGORIES,
+    Pair,
+    PairDataset,
+    fire_category,
+    fire_truth,
+    read_matrix,
+)
 from mosaic.errors import ConfigError, InputError, OutputError
 from mosaic.features import DETECTORS, FeatureExtractor
 from mosaic.fidelity import (
@@ -455,6 +462,75 @@ def summarize_models(results: Sequence[PairResult]) -> list[dict[str, Any]]:
     return rows
 
 
+def read_answers(path: Path) -> list[dict[str, Any]]:
+    """The JSON lines `mosaic register --pairs` printed (one object per pair)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read answers file {path}: {exc}") from exc
+    answers = []
+    for i, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            answer = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise InputError(f"{path} line {i} is not JSON: {exc}") from exc
+        if not isinstance(answer, dict) or "moving" not in answer or "fixed" not in answer:
+            raise InputError(f"{path} line {i} is not a `mosaic register --pairs` answer")
+        answers.append(answer)
+    return answers
+
+
+def _answer_error(answer: dict[str, Any] | None, points: np.ndarray) -> tuple[float, float]:
+    """Mean control-point errors (px, in the fixed image) of an answer and of its
+    `H_moving_to_fixed`; inf for a failed or missing answer."""
+    if answer is None or answer.get("status") != "registered" or not answer["H_moving_to_fixed"]:
+        return math.inf, math.inf
+    xy_fixed, xy_moving = points[:, 0:2], points[:, 2:4]
+    H = np.array(answer["H_moving_to_fixed"], np.float64)
+    h_error = float(np.mean(np.linalg.norm(apply_homography(H, xy_moving) - xy_fixed, axis=1)))
+    if answer.get("model") != "quadratic" or not answer.get("Q_moving_to_fixed"):
+        return h_error, h_error
+    Q = np.array(answer["Q_moving_to_fixed"], np.float64)
+    q_error = float(np.mean(np.linalg.norm(apply_quadratic(Q, xy_moving) - xy_fixed, axis=1)))
+    return q_error, h_error
+
+
+def score_answers(
+    root: Path, answers: Sequence[dict[str, Any]]
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The FIRE protocol applied to `mosaic register --pairs` answers on a FIRE folder:
+    (per pair, summary). Each pair XNN is looked up by its images (fixed XNN_1, moving XNN_2,
+    FIRE's order); its answer (the quadratic where it answered one, else the homography) and
+    its `H_moving_to_fixed` map the control points of the moving image into the fixed one. A
+    failed pair, or one without an answer, counts as a miss at every threshold."""
+    by_images = {(Path(a["fixed"]).stem, Path(a["moving"]).stem): a for a in answers}
+    rows = []
+    for name, gt in fire_truth(root):
+        answer = by_images.get((f"{name}_1", f"{name}_2"))
+        answer_px, h_px = _answer_error(answer, read_matrix(gt, (-1, 4)))
+        rows.append(
+            {
+                "pair": name,
+                "category": fire_category(name),
+                "status": "no answer" if answer is None else answer.get("status"),
+                "model": None if answer is None else answer.get("model"),
+                "answer_error_px": answer_px,
+                "H_error_px": h_px,
+            }
+        )
+    categories = [r["category"] for r in rows]
+    summary = []
+    for label, key in (("answer", "answer_error_px"), ("H_moving_to_fixed", "H_error_px")):
+        errors = np.array([r[key] for r in rows])
+        row: dict[str, Any] = {"transform": label, "pairs": len(rows)}
+        row["failed"] = int(np.sum(~np.isfinite(errors)))
+        row.update(_fire_scores(errors, categories))
+        summary.append(row)
+    return rows, summary
+
+
 # --------------------------------------------------------------------------------------------
 # Tables
 # --------------------------------------------------------------------------------------------
@@ -524,6 +600,26 @@ MODEL_COLUMNS = (
 )
 
 
+ANSWER_COLUMNS = (
+    ("transform", "transform", ""),
+    ("pairs", "pairs", "d"),
+    ("failed", "failed", "d"),
+    ("auc", "AUC 1-25", ".3f"),
+    ("auc_0_25", "AUC 0-25", ".3f"),
+    ("mauc", "mAUC", ".3f"),
+    ("mean_error_px", "error px", ".2f"),
+)
+
+
+def format_answer_table(summary: Sequence[dict[str, Any]]) -> str:
+    """`score_answers`' summary: the FIRE protocol for the answer and for the homography."""
+    return (
+        "FIRE protocol of the `mosaic register --pairs` answers (error px: mean control-point "
+        "distance in the fixed image, full resolution; failed pairs count as misses)\n"
+        + format_table(summary, _with_categories(ANSWER_COLUMNS, summary))
+    )
+
+
 def _with_categories(
     columns: Sequence[tuple[str, str, str]], rows: Sequence[dict[str, Any]]
 ) -> list[tuple[str, str, str]]:
@@ -569,6 +665,16 @@ def _prepare_out(out_dir: str | Path) -> Path:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"cannot create output folder {out}: {exc.strerror or exc}") from exc
+    return out
+
+
+def write_answer_tables(
+    rows: Sequence[dict[str, Any]], summary: Sequence[dict[str, Any]], out_dir: str | Path
+) -> Path:
+    """`score_answers`' tables as `answers_pairs.csv` and `answers.csv` in `out_dir`."""
+    out = _prepare_out(out_dir)
+    write_csv(out / "answers_pairs.csv", rows)
+    write_csv(out / "answers.csv", summary)
     return out
 
 

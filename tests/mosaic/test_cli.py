@@ -201,6 +201,7 @@ def test_register_prints_the_homography(fundus, tmp_path):
     )
     lines = [json.loads(line) for line in result.stdout.splitlines()]
     assert len(lines) == 2
+    assert "2 pairs: 2 registered, 0 failed" in result.stderr  # the tally, beside a progress bar
     assert (
         corner_error(np.array(lines[1]["H_moving_to_fixed"]), np.linalg.inv(H_b_to_a), (480, 320))
         < 2.0
@@ -214,6 +215,7 @@ def test_register_prints_the_homography(fundus, tmp_path):
     assert result.exit_code == 1 and "Traceback" not in result.output
     lines = [json.loads(line) for line in result.stdout.splitlines()]
     assert [line["status"] for line in lines] == ["failed", "failed", "registered"]
+    assert "3 pairs: 1 registered, 2 failed" in result.stderr
     assert "missing.png" in lines[0]["reason"] and "row 3" in lines[1]["reason"]
     assert corner_error(np.array(lines[2]["H_moving_to_fixed"]), H_b_to_a, (480, 320)) < 2.0
 

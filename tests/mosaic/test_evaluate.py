@@ -18,7 +18,7 @@ from mosaic.cli import app as mosaic_app
 from mosaic.config import Config, with_overrides
 from mosaic.curved import write_fire_folder
 from mosaic.datasets import Pair
-from mosaic.errors import ConfigError
+from mosaic.errors import ConfigError, InputError
 from mosaic.evaluate import (
     FIRE_VARIANTS,
     VideoResult,
@@ -34,7 +34,9 @@ from mosaic.evaluate import (
     format_video_tables,
     make_extractors,
     parse_detectors,
+    read_answers,
     scale_matrix,
+    score_answers,
     summarize_videos,
     write_video_outputs,
 )
@@ -464,3 +466,88 @@ def test_video_evaluation_reports_user_errors(tmp_path):
     result = runner.invoke(glampoints_app, ["evaluate", str(tmp_path), "--detector", "surf"])
     assert result.exit_code == 2
     assert "unknown detector surf" in result.output
+
+
+def _answer(name: str, model: str, H: np.ndarray, Q: np.ndarray | None = None) -> dict:
+    return {
+        "fixed": f"Images/{name}_1.jpg",
+        "moving": f"Images/{name}_2.jpg",
+        "status": "registered",
+        "model": model,
+        "H_moving_to_fixed": H.tolist(),
+        "Q_moving_to_fixed": None if Q is None else Q.tolist(),
+    }
+
+
+def test_score_answers_applies_the_fire_protocol_to_register_answers(tmp_path):
+    """Known answers on a FIRE folder whose truth is a shift of (10, -5): the exact answer
+    scores 0 px, an answer 3-4-5 off scores 5 px, a pair without an answer is a miss."""
+    root = tmp_path / "FIRE"
+    (root / "Images").mkdir(parents=True)
+    (root / "Ground Truth").mkdir()
+    xy2 = np.random.default_rng(0).uniform(0, 300, (10, 2))
+    for name in ("S01", "P01", "A01"):
+        points = np.hstack([xy2 + np.array([10.0, -5.0]), xy2])
+        np.savetxt(root / "Ground Truth" / f"control_points_{name}_1_2.txt", points)
+    shift = np.array([[1.0, 0, 10], [0, 1, -5], [0, 0, 1]])
+    Q_off = np.array([[0, 0, 0, 1.0, 0, 13], [0, 0, 0, 0, 1.0, -1]])  # (3, 4) off
+    H_off = shift + np.array([[0, 0, 6], [0, 0, 8], [0, 0, 0]])  # (6, 8) off
+    answers = [_answer("S01", "homography", shift), _answer("P01", "quadratic", H_off, Q_off)]
+    path = tmp_path / "answers.jsonl"
+    path.write_text("".join(json.dumps(a) + "\n" for a in answers))
+    rows, summary = score_answers(root, read_answers(path))
+    assert [(r["pair"], r["category"], r["status"]) for r in rows] == [
+        ("A01", "A", "no answer"),
+        ("P01", "P", "registered"),
+        ("S01", "S", "registered"),
+    ]
+    np.testing.assert_allclose([r["answer_error_px"] for r in rows], [math.inf, 5, 0], atol=1e-9)
+    np.testing.assert_allclose([r["H_error_px"] for r in rows], [math.inf, 10, 0], atol=1e-9)
+    answer, homography = summary
+    assert answer["failed"] == homography["failed"] == 1
+    # AUC 1-25: 0 px is under all 25 thresholds, 5 px under 20 (t = 6..25), 10 px under 15
+    assert answer["auc"] == pytest.approx((25 + 20) / 75)
+    assert homography["auc"] == pytest.approx((25 + 15) / 75)
+    assert (answer["auc_S"], answer["auc_P"], answer["auc_A"]) == (1.0, 0.8, 0.0)
+    assert answer["mauc"] == pytest.approx(0.6)
+    assert answer["mean_error_px"] == pytest.approx(2.5)  # of the pairs answered
+    path.write_text("not json\n")
+    with pytest.raises(InputError, match="line 1 is not JSON"):
+        read_answers(path)
+
+
+def test_register_answers_scored_by_glampoints_evaluate(tmp_path, fundus):
+    """`mosaic register --pairs` on a FIRE folder, then `glampoints evaluate --answers`: the
+    pairs with retina score within 2 px of the truth, the featureless one is a miss."""
+    root = tmp_path / "FIRE"
+    make_fire_fixture(root, fundus)
+    names = ("S01", "P01", "A01")
+    (root / "pairs.csv").write_text(
+        "fixed,moving\n" + "".join(f"Images/{n}_1.jpg,Images/{n}_2.jpg\n" for n in names)
+    )
+    result = runner.invoke(
+        mosaic_app, ["register", "--pairs", str(root / "pairs.csv"), "--detector", "sift"]
+    )
+    assert result.exit_code == 1  # A01 fails
+    (tmp_path / "answers.jsonl").write_text(result.stdout)
+    out = tmp_path / "scored"
+    args = ["evaluate", str(root), "--answers", str(tmp_path / "answers.jsonl"), "--out", str(out)]
+    result = runner.invoke(glampoints_app, args)
+    assert result.exit_code == 0, result.output
+    assert "H_moving_to_fixed" in result.stdout
+    with (out / "answers_pairs.csv").open() as fh:
+        rows = {r["pair"]: r for r in csv.DictReader(fh)}
+    for name in ("S01", "P01"):
+        assert rows[name]["status"] == "registered"
+        assert float(rows[name]["answer_error_px"]) < 2.0
+    assert rows["A01"]["status"] == "failed" and rows["A01"]["answer_error_px"] == "inf"
+    with (out / "answers.csv").open() as fh:
+        answer = next(csv.DictReader(fh))
+    assert answer["failed"] == "1" and float(answer["auc"]) > 0.6
+    # an answers file that is not one: one clear line, no traceback
+    (tmp_path / "bad.jsonl").write_text('{"a": 1}\n')
+    result = runner.invoke(
+        glampoints_app, ["evaluate", str(root), "--answers", str(tmp_path / "bad.jsonl")]
+    )
+    assert result.exit_code == 2 and "not a `mosaic register --pairs` answer" in result.output
+    assert "Traceback" not in result.output
