@@ -36,9 +36,11 @@ from mosaic.io import Frame, Lookahead
 from mosaic.matching import Matches, match_descriptors
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import (
+    FieldAligner,
     FrameGate,
     OverlayMask,
     Prepared,
+    align_fields,
     inverted_as,
     pair_polarities,
     pair_working_scales,
@@ -78,6 +80,8 @@ class FrameRecord:
     quality: float = float("nan")  # agreement with the mosaic under it (mosaic.quality)
     flagged: bool = False  # quality under [compose] quality_threshold: likely misregistered
     gain: float | None = None  # exposure gain the frame was composed with (None: none)
+    # interlaced video: how far (dx, dy px) its second field was moved onto its first
+    field_shift: tuple[int, int] | None = None
     stage_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -319,6 +323,7 @@ class MosaicBuilder:
         self._segments: list[_Segment] = []
         self._gate = FrameGate(config.gating)
         self._overlay = OverlayMask(config.preprocess)
+        self._fields = FieldAligner(config.preprocess.deinterlace)
         compose = config.compose
         self._photometry = VideoPhotometry(compose.side_bands, compose.flatfield)
         self._max_side = config.preprocess.max_side_px
@@ -392,6 +397,7 @@ class MosaicBuilder:
         if image is None:
             return Extracted(record, None, skip=error or "frame could not be decoded")
         timer = _Timer(record)
+        image, record.field_shift = timer.run("preprocess", self._fields, image)
         work, S = timer.run("preprocess", self._working_size, image)
         prepared = timer.run("preprocess", prepare, work, self.config.preprocess)
         gate_reason = self._gate(prepared)  # before overlay masking: sharpness of the whole view
@@ -629,6 +635,9 @@ class MosaicBuilder:
         flat-field estimates."""
         todo = {s.index: s for s in self._segments if s.refined_poses and s.records}
         owner = {r.index for s in todo.values() for r in s.records}
+        shifts = {
+            r.index: r.field_shift for r in self.records if r.field_shift not in (None, (0, 0))
+        }
         poses = {k: dict(s.refined_poses or {}) for k, s in todo.items()}
         self._photometry.refresh()
         # only the field-of-view mask of `prepare` is needed here
@@ -638,6 +647,8 @@ class MosaicBuilder:
             for index, image in reread():
                 if index not in owner or image is None:
                     continue
+                if index in shifts:  # the fields as they were registered
+                    image = align_fields(image, shifts[index])
                 # the overlay estimate of the whole video: no overlay pixels from any frame
                 work, _ = self._working_size(image)
                 prepared = self._overlay.apply(prepare(work, mask_config))
@@ -670,6 +681,12 @@ class MosaicBuilder:
         `reread` re-opens the input so that a refined mosaic is rendered from the frames again;
         without it the live canvas and its poses are kept.
         """
+        if self._fields.looks_interlaced and not self._fields.on:
+            log.warning(
+                "the frames' odd rows lie %.1f px from their even rows (median): an interlaced "
+                "camera or a scanner's line offset; [preprocess] deinterlace = true aligns them",
+                self._fields.median_offset_px,
+            )
         if not interrupted:
             for segment in self._segments:
                 self._refine(segment)
@@ -745,6 +762,7 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict
         else round(record.reproj_error_px, 3),
         "quality": None if np.isnan(record.quality) else round(record.quality, 3),
         "flagged": record.flagged,
+        "field_shift": None if record.field_shift is None else list(record.field_shift),
         "gain": None if record.gain is None else round(record.gain, 4),
         "time_ms": round(record.time_ms, 2),
     }
@@ -810,6 +828,11 @@ def build_report(
         else 0.0,
         "quality": round(float(np.median(scores)), 3) if scores else None,
         "quality_flagged": sum(r.flagged for r in records if r.status == REGISTERED),
+        "deinterlaced": sum(r.field_shift not in (None, (0, 0)) for r in records),
+        "field_offset_px": None
+        if builder._fields.median_offset_px is None
+        else round(builder._fields.median_offset_px, 2),
+        "looks_interlaced": builder._fields.looks_interlaced,
         "total_time_s": round(elapsed, 3),
         "fps": round(len(records) / elapsed, 2) if elapsed > 0 else 0.0,
         "mean_stage_ms": stage_ms,

@@ -297,6 +297,113 @@ def vessel_polarity(image: np.ndarray) -> float:
     return float(np.percentile(dark, 95) + 1.0) / float(np.percentile(bright, 95) + 1.0)
 
 
+FIELD_MIN_ROWS = 16  # frames with fewer rows are not tested
+PHASE_TAPER = (
+    0.15  # cycles / px: the phase correlation's spectrum weighted by a Gaussian of this sd
+)
+
+
+def field_offset(image: np.ndarray) -> tuple[float, float]:
+    """Where (dx, dy px) a frame's odd rows lie relative to its even rows, beyond the row
+    between them.
+
+    An interlaced camera reads the odd rows (its second field) half a frame interval after the
+    even ones, so a moving view is combed: the fields are offset by half the motion between
+    frames. A progressive frame gives ~(0, 0). Phase correlation of the two fields over the
+    frame's middle half: borders and burned-in overlays are fixed to the camera and would pull
+    it to 0.
+    """
+    # luma: in 4:2:0 video and JPEG the colour is shared by row pairs, which hides the fields
+    gray = to_gray(image, False).astype(np.float32)
+    h, w = gray.shape
+    if h < FIELD_MIN_ROWS or w < FIELD_MIN_ROWS:
+        return 0.0, 0.0
+    n = h // 2
+    first, second = gray[0 : 2 * n : 2], gray[1 : 2 * n : 2]
+    # the first field halfway between its rows: the second field's rows (frame rows 2k + 1),
+    # so that a progressive frame correlates at 0 (a half-row shift is ambiguous to measure)
+    first = (first[:-1] + first[1:]) / 2
+    second = second[:-1]
+    rows, cols = slice(n // 4, n // 4 + n // 2), slice(w // 4, w // 4 + w // 2)
+    first, second = first[rows, cols], second[rows, cols]
+    dx, dy = _phase_shift(first, second)
+    return dx, 2.0 * dy  # a field row is two frame rows
+
+
+def _phase_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """The shift (dx, dy px) of `b` against `a` by phase correlation: the peak of the
+    normalised cross-power spectrum's inverse, refined by a parabola through it and its
+    neighbours along each axis (OpenCV's centroid is biased by up to a pixel on smooth images)."""
+    window = cv2.createHanningWindow((a.shape[1], a.shape[0]), cv2.CV_32F)
+    fa = np.fft.rfft2((a - a.mean()) * window)
+    fb = np.fft.rfft2((b - b.mean()) * window)
+    cross = fb * np.conj(fa)
+    # whitened, then tapered: frequencies the image lacks carry only noise and quantisation
+    fy = np.fft.fftfreq(a.shape[0])[:, None]
+    fx = np.fft.rfftfreq(a.shape[1])[None, :]
+    taper = np.exp(-(fx**2 + fy**2) / (2 * PHASE_TAPER**2))
+    surface = np.fft.irfft2(cross / np.maximum(np.abs(cross), 1e-9) * taper, s=a.shape)
+    py, px = np.unravel_index(int(np.argmax(surface)), surface.shape)
+    h, w = surface.shape
+
+    def vertex(left: float, centre: float, right: float) -> float:
+        curvature = left - 2 * centre + right
+        return 0.0 if curvature >= 0 else 0.5 * (left - right) / curvature
+
+    dx = px + vertex(surface[py, px - 1], surface[py, px], surface[py, (px + 1) % w])
+    dy = py + vertex(surface[py - 1, px], surface[py, px], surface[(py + 1) % h, px])
+    return float((dx + w / 2) % w - w / 2), float((dy + h / 2) % h - h / 2)
+
+
+def align_fields(image: np.ndarray, shift: tuple[int, int]) -> np.ndarray:
+    """The frame with its second field (odd rows) moved back by `shift` (dx px, dy px; dy
+    even: whole field rows) onto the first field's pose. Whole pixels: interpolating the odd
+    rows only would blur every other row."""
+    out = image.copy()
+    second = image[1::2]
+    move = np.float32([[1, 0, -shift[0]], [0, 1, -(shift[1] // 2)]])
+    size = (second.shape[1], second.shape[0])
+    out[1::2] = cv2.warpAffine(
+        second, move, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE
+    )
+    return out
+
+
+class FieldAligner:
+    """Interlacing, frame by frame: each frame's field offset is measured (`field_offset`), and
+    with `on` (`[preprocess] deinterlace`: the camera is interlaced) its second field is moved
+    by whole pixels onto its first (`align_fields`): the combing goes, the full resolution stays
+    and the frame takes its first field's pose. Off, the offsets only say whether the video
+    looks interlaced (`looks_interlaced`: their median above `INTERLACED_PX`). Measured medians:
+    0.2-0.75 px on 16 progressive realistic videos, 0.05-0.18 px on the sample and the two SLO
+    clips, 1.9 px on the adaptive-optics clip (a constant line offset of its scanner), 0.9-4.8
+    px on interlaced realistic videos (half the motion between frames)."""
+
+    INTERLACED_PX = 1.5
+
+    def __init__(self, on: bool = False) -> None:
+        self.on = on
+        self.offsets_px: list[float] = []
+
+    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, tuple[int, int] | None]:
+        """The frame, its fields aligned when on, and the shift applied (None: off)."""
+        dx, dy = field_offset(image)
+        self.offsets_px.append(float(np.hypot(dx, dy)))
+        if not self.on:
+            return image, None
+        shift = (round(dx), 2 * round(dy / 2))  # whole columns and whole field rows
+        return (image if shift == (0, 0) else align_fields(image, shift)), shift
+
+    @property
+    def median_offset_px(self) -> float | None:
+        return float(np.median(self.offsets_px)) if self.offsets_px else None
+
+    @property
+    def looks_interlaced(self) -> bool:
+        median = self.median_offset_px
+        return median is not None and median > self.INTERLACED_PX
+
+
 def invert_in_view(image: np.ndarray) -> np.ndarray:
     """The image with its grey levels inverted inside its field of view (bright vessels made
     dark); the black border around the view stays black."""

@@ -114,6 +114,8 @@ class SynthParams:
     motion_blur: float = 0.0  # exposure / frame interval: streak = this x motion at the centre
     defocus_burst_prob: float = 0.0  # chance per frame that a 3-8 frame defocus burst starts
     glare_burst_prob: float = 0.0  # chance per frame that a 3-8 frame drifting glare starts
+    interlaced: bool = False  # odd rows from half a frame interval later (an analogue camera's
+    #   second field); the ground truth is the even rows' pose
 
     @classmethod
     def hard(cls, **overrides: Any) -> SynthParams:
@@ -535,8 +537,8 @@ def render_frames(
         yy -= (h - 1) / 2
         r2_scale = 1.0 / ((w / 2) ** 2 + (h / 2) ** 2)
 
-    for i, H_frame_to_source in enumerate(H_all):
-        frame = cv2.warpPerspective(
+    def view(H_frame_to_source: np.ndarray) -> np.ndarray:
+        return cv2.warpPerspective(
             source,
             np.linalg.inv(H_frame_to_source),
             (w, h),
@@ -544,18 +546,33 @@ def render_frames(
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=(0, 0, 0),
         )
+
+    def blurred(frame: np.ndarray, i: int) -> np.ndarray:
+        """Optics, motion and defocus blur the scene before the sensor."""
+        img = frame.astype(np.float32)
+        if params.optics_blur_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), params.optics_blur_px)
+        length, angle = real.streak[i]
+        if length >= 1.0:
+            img = cv2.filter2D(img, -1, _line_kernel(length, angle))
+        if real.defocus_px[i] >= 0.5:
+            img = cv2.filter2D(img, -1, _disc_kernel(real.defocus_px[i]))
+        return img
+
+    for i, H_frame_to_source in enumerate(H_all):
+        frame = view(H_frame_to_source)
+        second = None  # the second field's view, half a frame interval later
+        if params.interlaced and i + 1 < len(H_all):
+            second = view((H_frame_to_source + H_all[i + 1]) / 2)
         if not params.nuisances and aperture is None:
+            if second is not None:
+                frame[1::2] = second[1::2]
             yield frame, H_frame_to_source
             continue
-        img = frame.astype(np.float32)
-        if params.nuisances:  # optics, motion and defocus blur the scene before the sensor
-            if params.optics_blur_px > 0:
-                img = cv2.GaussianBlur(img, (0, 0), params.optics_blur_px)
-            length, angle = real.streak[i]
-            if length >= 1.0:
-                img = cv2.filter2D(img, -1, _line_kernel(length, angle))
-            if real.defocus_px[i] >= 0.5:
-                img = cv2.filter2D(img, -1, _disc_kernel(real.defocus_px[i]))
+        img = blurred(frame, i) if params.nuisances else frame.astype(np.float32)
+        if second is not None:  # the sensor reads the odd rows from the second field
+            img[1::2] = (blurred(second, i) if params.nuisances else second)[1::2]
+        if params.nuisances:
             r2 = ((xx - vig_centre[i, 0]) ** 2 + (yy - vig_centre[i, 1]) ** 2) * r2_scale
             light = gain[i] * real.gain[i] * (1.0 - vignette[i] * r2)
             img *= light[..., None] * tint[i].astype(np.float32)

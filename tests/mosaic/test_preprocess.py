@@ -5,9 +5,12 @@ import pytest
 from glampoints.synthetic import frame_preprocess
 from mosaic.config import PreprocessConfig
 from mosaic.preprocess import (
+    FieldAligner,
     OverlayMask,
+    align_fields,
     erode_by_disc,
     field_of_view_mask,
+    field_offset,
     invert_in_view,
     inverted_as,
     pair_polarities,
@@ -280,3 +283,53 @@ def test_vessel_polarity_tells_a_colour_photograph_from_its_negative():
     assert fixed is photo
     inside = field_of_view_mask(photo[:, :, 1], 15, 0) > 0
     assert np.array_equal(moving[inside], photo[inside])  # the negative made positive again
+
+
+def _texture(seed: int = 0) -> np.ndarray:
+    """A smooth random texture (BGR uint8, 600x800): what a frame's fields are compared on."""
+    noise = np.random.default_rng(seed).normal(0, 60, (600, 800)).astype(np.float32)
+    grey = np.clip(cv2.GaussianBlur(noise, (0, 0), 3) + 128, 0, 255).astype(np.uint8)
+    return cv2.merge([grey, grey, grey])
+
+
+def _interlaced(scene: np.ndarray, shift: tuple[float, float], origin=(150, 120)):
+    """(progressive frame, the same frame interlaced: its odd rows from a view moved by
+    `shift` px, as an interlaced camera's second field of a moving view)."""
+    x0, y0 = origin
+    first = np.ascontiguousarray(scene[y0 : y0 + 300, x0 : x0 + 400])
+    move = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])  # content moves by shift
+    second = cv2.warpAffine(scene, move, (scene.shape[1], scene.shape[0]))
+    combed = first.copy()
+    combed[1::2] = second[y0 : y0 + 300, x0 : x0 + 400][1::2]
+    return first, combed
+
+
+@pytest.mark.parametrize("shift", [(6.0, 4.0), (-3.0, 8.0), (2.5, -1.0), (0.0, 0.0)])
+def test_field_offset_measures_the_second_fields_motion(shift):
+    first, combed = _interlaced(_texture(), shift)
+    np.testing.assert_allclose(field_offset(combed), shift, atol=0.25)
+    assert np.hypot(*field_offset(first)) < 0.3  # progressive: the fields agree
+
+
+def test_align_fields_puts_the_second_field_back():
+    first, combed = _interlaced(_texture(), (6.0, 4.0))
+    aligned = align_fields(combed, (6, 4))
+    inner = (slice(10, -10), slice(10, -10))  # the replicated border aside
+    assert np.array_equal(aligned[inner], first[inner])
+    assert np.abs(combed[inner].astype(int) - first[inner]).mean() > 2  # it was combed
+
+
+def test_field_aligner_aligns_when_on_and_tells_an_interlaced_video_when_off():
+    scene = _texture(1)
+    steps = [(6.0 + i % 3, 4.0 - 2 * (i % 2)) for i in range(6)]
+    on, off, progressive = FieldAligner(on=True), FieldAligner(), FieldAligner()
+    inner = (slice(10, -10), slice(10, -10))
+    for i, step in enumerate(steps):
+        first, combed = _interlaced(scene, step, origin=(150 + 10 * i, 120))
+        out, shift = on(combed)
+        assert shift == (round(step[0]), round(step[1]))
+        assert np.array_equal(out[inner], first[inner])
+        assert off(combed) == (combed, None)  # off: measured, untouched
+        assert progressive(first) == (first, None)
+    assert off.looks_interlaced and off.median_offset_px > 5
+    assert not progressive.looks_interlaced and progressive.median_offset_px < 0.3

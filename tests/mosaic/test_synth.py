@@ -458,3 +458,20 @@ def test_source_folder_choice_is_deterministic(tmp_path):
         pick_source(empty, 0)
     result = CliRunner().invoke(app, ["synth", "--hard", "--realistic", "-o", str(out)])
     assert result.exit_code == 2 and "one of --hard and --realistic" in result.output
+
+
+def test_interlaced_frames_take_their_odd_rows_half_a_frame_later():
+    """Clean render: the even rows are the progressive frame's, the odd rows the view halfway
+    to the next frame's pose (the second field); the ground truth is unchanged."""
+    source = cv2.imread(str(sample_image_path()))
+    params = SynthParams(n_frames=3, size=SIZE, seed=5, nuisances=False, aperture=False)
+    plain = list(render_frames(source, params))
+    combed = list(render_frames(source, SynthParams(**{**params.__dict__, "interlaced": True})))
+    for (a, H_a), (b, H_b) in zip(plain, combed, strict=True):
+        np.testing.assert_array_equal(H_a, H_b)
+        np.testing.assert_array_equal(a[0::2], b[0::2])
+    H0, H1 = plain[0][1], plain[1][1]
+    halfway = cv2.warpPerspective(source, np.linalg.inv((H0 + H1) / 2), SIZE)
+    np.testing.assert_array_equal(combed[0][0][1::2], halfway[1::2])
+    assert np.abs(combed[0][0][1::2].astype(int) - plain[0][0][1::2]).mean() > 3
+    np.testing.assert_array_equal(combed[-1][0], plain[-1][0])  # the last frame has no next
