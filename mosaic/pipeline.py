@@ -40,7 +40,7 @@ from mosaic.preprocess import (
     FrameGate,
     OverlayMask,
     Prepared,
-    align_fields,
+    first_field,
     inverted_as,
     pair_polarities,
     pair_working_scales,
@@ -80,8 +80,7 @@ class FrameRecord:
     quality: float = float("nan")  # agreement with the mosaic under it (mosaic.quality)
     flagged: bool = False  # quality under [compose] quality_threshold: likely misregistered
     gain: float | None = None  # exposure gain the frame was composed with (None: none)
-    # interlaced video: how far (dx, dy px) its second field was moved onto its first
-    field_shift: tuple[int, int] | None = None
+    deinterlaced: bool = False  # replaced by its first field (`[preprocess] deinterlace`)
     stage_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -397,7 +396,7 @@ class MosaicBuilder:
         if image is None:
             return Extracted(record, None, skip=error or "frame could not be decoded")
         timer = _Timer(record)
-        image, record.field_shift = timer.run("preprocess", self._fields, image)
+        image, record.deinterlaced = timer.run("preprocess", self._fields, image)
         work, S = timer.run("preprocess", self._working_size, image)
         prepared = timer.run("preprocess", prepare, work, self.config.preprocess)
         gate_reason = self._gate(prepared)  # before overlay masking: sharpness of the whole view
@@ -635,9 +634,7 @@ class MosaicBuilder:
         flat-field estimates."""
         todo = {s.index: s for s in self._segments if s.refined_poses and s.records}
         owner = {r.index for s in todo.values() for r in s.records}
-        shifts = {
-            r.index: r.field_shift for r in self.records if r.field_shift not in (None, (0, 0))
-        }
+        interlaced = {r.index for r in self.records if r.deinterlaced}
         poses = {k: dict(s.refined_poses or {}) for k, s in todo.items()}
         self._photometry.refresh()
         # only the field-of-view mask of `prepare` is needed here
@@ -647,8 +644,8 @@ class MosaicBuilder:
             for index, image in reread():
                 if index not in owner or image is None:
                     continue
-                if index in shifts:  # the fields as they were registered
-                    image = align_fields(image, shifts[index])
+                if index in interlaced:  # the frame as it was registered
+                    image = first_field(image)
                 # the overlay estimate of the whole video: no overlay pixels from any frame
                 work, _ = self._working_size(image)
                 prepared = self._overlay.apply(prepare(work, mask_config))
@@ -762,7 +759,7 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict
         else round(record.reproj_error_px, 3),
         "quality": None if np.isnan(record.quality) else round(record.quality, 3),
         "flagged": record.flagged,
-        "field_shift": None if record.field_shift is None else list(record.field_shift),
+        "deinterlaced": record.deinterlaced,
         "gain": None if record.gain is None else round(record.gain, 4),
         "time_ms": round(record.time_ms, 2),
     }
@@ -828,7 +825,7 @@ def build_report(
         else 0.0,
         "quality": round(float(np.median(scores)), 3) if scores else None,
         "quality_flagged": sum(r.flagged for r in records if r.status == REGISTERED),
-        "deinterlaced": sum(r.field_shift not in (None, (0, 0)) for r in records),
+        "deinterlaced": sum(r.deinterlaced for r in records),
         "field_offset_px": None
         if builder._fields.median_offset_px is None
         else round(builder._fields.median_offset_px, 2),

@@ -355,29 +355,29 @@ def _phase_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return float((dx + w / 2) % w - w / 2), float((dy + h / 2) % h - h / 2)
 
 
-def align_fields(image: np.ndarray, shift: tuple[int, int]) -> np.ndarray:
-    """The frame with its second field (odd rows) moved back by `shift` (dx px, dy px; dy
-    even: whole field rows) onto the first field's pose. Whole pixels: interpolating the odd
-    rows only would blur every other row."""
+def first_field(image: np.ndarray) -> np.ndarray:
+    """The frame's first field alone, at full size: each odd row the mean of the even rows
+    around it (the last copies its neighbour). Moving the second field onto the first by its
+    measured offset leaves the rotation and zoom between the fields and a sub-pixel remainder:
+    on clean interlaced test videos that kept 3-4 px of pose error, the first field alone the
+    progressive video's 0.6-0.9 px."""
     out = image.copy()
-    second = image[1::2]
-    move = np.float32([[1, 0, -shift[0]], [0, 1, -(shift[1] // 2)]])
-    size = (second.shape[1], second.shape[0])
-    out[1::2] = cv2.warpAffine(
-        second, move, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE
-    )
+    even = image[0::2].astype(np.float32)
+    n_odd = image[1::2].shape[0]
+    below = np.concatenate([even[1:], even[-1:]])[:n_odd]
+    out[1::2] = np.rint((even[:n_odd] + below) / 2).astype(image.dtype)  # within the range
     return out
 
 
 class FieldAligner:
     """Interlacing, frame by frame: each frame's field offset is measured (`field_offset`), and
-    with `on` (`[preprocess] deinterlace`: the camera is interlaced) its second field is moved
-    by whole pixels onto its first (`align_fields`): the combing goes, the full resolution stays
-    and the frame takes its first field's pose. Off, the offsets only say whether the video
-    looks interlaced (`looks_interlaced`: their median above `INTERLACED_PX`). Measured medians:
-    0.2-0.75 px on 16 progressive realistic videos, 0.05-0.18 px on the sample and the two SLO
-    clips, 1.9 px on the adaptive-optics clip (a constant line offset of its scanner), 0.9-4.8
-    px on interlaced realistic videos (half the motion between frames)."""
+    with `on` (`[preprocess] deinterlace`: the camera is interlaced) the frame is replaced by
+    its first field (`first_field`): the combing goes, and every frame takes its first field's
+    pose. Off, the offsets only say whether the video looks interlaced (`looks_interlaced`:
+    their median above `INTERLACED_PX`). Measured medians: 0.2-0.75 px on 16 progressive
+    realistic videos, 0.05-0.18 px on the sample and the two SLO clips, 1.9 px on the
+    adaptive-optics clip (a constant line offset of its scanner), 0.9-4.8 px on interlaced
+    realistic videos (half the motion between frames)."""
 
     INTERLACED_PX = 1.5
 
@@ -385,14 +385,10 @@ class FieldAligner:
         self.on = on
         self.offsets_px: list[float] = []
 
-    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, tuple[int, int] | None]:
-        """The frame, its fields aligned when on, and the shift applied (None: off)."""
-        dx, dy = field_offset(image)
-        self.offsets_px.append(float(np.hypot(dx, dy)))
-        if not self.on:
-            return image, None
-        shift = (round(dx), 2 * round(dy / 2))  # whole columns and whole field rows
-        return (image if shift == (0, 0) else align_fields(image, shift)), shift
+    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, bool]:
+        """The frame (its first field alone when on) and whether it was deinterlaced."""
+        self.offsets_px.append(float(np.hypot(*field_offset(image))))
+        return (first_field(image), True) if self.on else (image, False)
 
     @property
     def median_offset_px(self) -> float | None:

@@ -7,10 +7,10 @@ from mosaic.config import PreprocessConfig
 from mosaic.preprocess import (
     FieldAligner,
     OverlayMask,
-    align_fields,
     erode_by_disc,
     field_of_view_mask,
     field_offset,
+    first_field,
     invert_in_view,
     inverted_as,
     pair_polarities,
@@ -311,25 +311,27 @@ def test_field_offset_measures_the_second_fields_motion(shift):
     assert np.hypot(*field_offset(first)) < 0.3  # progressive: the fields agree
 
 
-def test_align_fields_puts_the_second_field_back():
+def test_first_field_keeps_the_even_rows_and_interpolates_the_odd_ones():
     first, combed = _interlaced(_texture(), (6.0, 4.0))
-    aligned = align_fields(combed, (6, 4))
-    inner = (slice(10, -10), slice(10, -10))  # the replicated border aside
-    assert np.array_equal(aligned[inner], first[inner])
-    assert np.abs(combed[inner].astype(int) - first[inner]).mean() > 2  # it was combed
-
-
-def test_field_aligner_aligns_when_on_and_tells_an_interlaced_video_when_off():
-    scene = _texture(1)
-    steps = [(6.0 + i % 3, 4.0 - 2 * (i % 2)) for i in range(6)]
-    on, off, progressive = FieldAligner(on=True), FieldAligner(), FieldAligner()
+    out = first_field(combed)
+    assert out.shape == combed.shape and out.dtype == combed.dtype
+    assert np.array_equal(out[0::2], combed[0::2])
     inner = (slice(10, -10), slice(10, -10))
-    for i, step in enumerate(steps):
+    # the odd rows come back to the first field's view: combed by the second field before
+    assert np.abs(out[inner].astype(int) - first[inner]).mean() < 1.0
+    assert np.abs(combed[inner].astype(int) - first[inner]).mean() > 2
+    np.testing.assert_array_equal(out[-1], out[-2])  # the last odd row copies its neighbour
+
+
+def test_field_aligner_deinterlaces_when_on_and_tells_an_interlaced_video_when_off():
+    scene = _texture(1)
+    on, off, progressive = FieldAligner(on=True), FieldAligner(), FieldAligner()
+    for i in range(6):
+        step = (6.0 + i % 3, 4.0 - 2 * (i % 2))
         first, combed = _interlaced(scene, step, origin=(150 + 10 * i, 120))
-        out, shift = on(combed)
-        assert shift == (round(step[0]), round(step[1]))
-        assert np.array_equal(out[inner], first[inner])
-        assert off(combed) == (combed, None)  # off: measured, untouched
-        assert progressive(first) == (first, None)
+        out, deinterlaced = on(combed)
+        assert deinterlaced and np.array_equal(out, first_field(combed))
+        assert off(combed) == (combed, False)  # off: measured, untouched
+        assert progressive(first) == (first, False)
     assert off.looks_interlaced and off.median_offset_px > 5
     assert not progressive.looks_interlaced and progressive.median_offset_px < 0.3
