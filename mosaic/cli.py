@@ -422,6 +422,13 @@ def synth(
             "illumination, gamma, colour, lesions, noise, JPEG quality)."
         ),
     ] = False,
+    interlaced: Annotated[
+        bool,
+        typer.Option(
+            help="As an interlaced camera: each frame's odd rows from half a frame interval "
+            "later (the truth is the even rows' pose)."
+        ),
+    ] = False,
     curved_pairs: Annotated[
         int,
         typer.Option(
@@ -449,6 +456,8 @@ def synth(
     with _user_errors():
         if hard and realistic:
             raise InputError("choose one of --hard and --realistic")
+        if curved_pairs and interlaced:
+            raise InputError("--interlaced is for videos, not --curved-pairs")
         if curved_pairs:
             _curved_pairs(
                 image or sample_image_path(), output, curved_pairs, seed, size, realistic, turn_deg
@@ -456,7 +465,11 @@ def synth(
             return
         make = SynthParams.hard if hard else SynthParams.realistic if realistic else SynthParams
         params = make(
-            n_frames=frames, size=_parse_size(size or "660x350"), seed=seed, nuisances=not clean
+            n_frames=frames,
+            size=_parse_size(size or "660x350"),
+            seed=seed,
+            nuisances=not clean,
+            interlaced=interlaced,
         )
         source = pick_source(image or sample_image_path(), seed)
         gt = write_synthetic_video(source, output, params)

@@ -588,26 +588,24 @@ REGISTRATION_COLUMNS = (
 )
 
 
+FIRE_COLUMNS = (  # `_fire_scores` (a column per category goes in before mAUC)
+    ("auc", "AUC 1-25", ".3f"),
+    ("auc_0_25", "AUC 0-25", ".3f"),
+    ("mauc", "mAUC", ".3f"),
+    ("mean_error_px", "error px", ".2f"),
+)
 MODEL_COLUMNS = (
     ("detector", "detector", ""),
     ("model", "model", ""),
     ("failed", "failed", "d"),
-    ("auc", "AUC 1-25", ".3f"),
-    ("auc_0_25", "AUC 0-25", ".3f"),
-    ("mauc", "mAUC", ".3f"),
-    ("mean_error_px", "error px", ".2f"),
+    *FIRE_COLUMNS,
     ("s_per_pair", "s/pair", ".2f"),
 )
-
-
 ANSWER_COLUMNS = (
     ("transform", "transform", ""),
     ("pairs", "pairs", "d"),
     ("failed", "failed", "d"),
-    ("auc", "AUC 1-25", ".3f"),
-    ("auc_0_25", "AUC 0-25", ".3f"),
-    ("mauc", "mAUC", ".3f"),
-    ("mean_error_px", "error px", ".2f"),
+    *FIRE_COLUMNS,
 )
 
 

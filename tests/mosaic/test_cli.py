@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 
 import cv2
@@ -12,6 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 import mosaic.cli
+from mosaic import preprocess
 from mosaic.cli import app
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import corner_error, crop_pair, similarity
@@ -324,3 +326,40 @@ def test_build_of_the_shipped_sample_matches_its_ground_truth(tmp_path):
     assert report["summary"]["registered"] == len(truth) == 48
     errors = errors_to_first(report["frames"], truth, (660, 350))
     assert errors.mean() < 1.5 and errors.max() < 3.0, errors
+
+
+def test_an_interlaced_video_is_told_and_deinterlaced_on_request(tmp_path):
+    """`synth --interlaced` renders an interlaced camera; `build` says the video looks
+    interlaced, and with `[preprocess] deinterlace = true` takes every frame's first field."""
+    clip = tmp_path / "interlaced"
+    args = ["synth", str(SAMPLE_IMAGE), "-o", str(clip), "--frames", "12", "--size", "400x300"]
+    result = runner.invoke(app, [*args, "--interlaced", "--clean"])
+    assert result.exit_code == 0, result.output
+    frame = cv2.imread(str(sorted(clip.glob("*.png"))[5]))
+    assert preprocess.field_offset(frame)[0] != pytest.approx(0, abs=1.0)  # combed
+    result = runner.invoke(
+        app, ["build", str(clip), "-o", str(tmp_path / "a.png"), "--detector", "sift"]
+    )
+    assert result.exit_code == 0, result.output
+    assert "looks interlaced" in result.stdout
+    report = json.loads((tmp_path / "a.json").read_text())["summary"]
+    assert (
+        report["looks_interlaced"] and report["field_offset_px"] > 2 and report["deinterlaced"] == 0
+    )
+    (tmp_path / "di.toml").write_text("[preprocess]\ndeinterlace = true\n")
+    out = tmp_path / "b.png"
+    build = [
+        "build",
+        str(clip),
+        "-o",
+        str(out),
+        "--detector",
+        "sift",
+        "-c",
+        str(tmp_path / "di.toml"),
+    ]
+    result = runner.invoke(app, build)
+    assert result.exit_code == 0, result.output
+    assert re.search(r"deinterlaced\s+12", result.stdout)
+    result = runner.invoke(app, [*args, "--interlaced", "--curved-pairs", "2"])
+    assert result.exit_code == 2 and "not --curved-pairs" in result.output
