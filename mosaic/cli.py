@@ -168,7 +168,7 @@ def _print_summary(summary: dict[str, Any], output: Path, report_path: Path) -> 
     if summary.get("deinterlaced"):  # an interlaced camera: how many frames were combed
         rows.insert(4, ("deinterlaced", summary["deinterlaced"]))
     elif summary.get("looks_interlaced"):
-        rows.insert(4, ("looks interlaced", "yes: try [preprocess] deinterlace = true"))
+        rows.insert(4, ("looks interlaced", "yes (see [preprocess] deinterlace)"))
     width = max(len(name) for name, _ in rows)
     typer.echo("\n".join(f"{name:<{width}}  {value}" for name, value in rows))
     typer.echo(f"mosaic: {output}\nreport: {report_path}")
