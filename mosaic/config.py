@@ -24,7 +24,7 @@ class PreprocessConfig:
     """The paper's fundus pre-processing, each step switchable, plus the field-of-view mask."""
 
     deinterlace: bool = False  # video from an interlaced camera: each frame is replaced by its
-    # first field, line-doubled (`preprocess.FieldAligner`); the report says when a video looks so
+    # first field, line-doubled (`preprocess.Deinterlacer`); the report says when a video looks so
     green_channel: bool = True  # use the green channel (best vessel contrast) instead of luma
     clahe: bool = True  # contrast-limited adaptive histogram equalisation
     clahe_clip_limit: float = 2.0

@@ -36,7 +36,7 @@ from mosaic.io import Frame, Lookahead
 from mosaic.matching import Matches, match_descriptors
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import (
-    FieldAligner,
+    Deinterlacer,
     FrameGate,
     OverlayMask,
     Prepared,
@@ -322,7 +322,7 @@ class MosaicBuilder:
         self._segments: list[_Segment] = []
         self._gate = FrameGate(config.gating)
         self._overlay = OverlayMask(config.preprocess)
-        self._fields = FieldAligner(config.preprocess.deinterlace)
+        self._fields = Deinterlacer(config.preprocess.deinterlace)
         compose = config.compose
         self._photometry = VideoPhotometry(compose.side_bands, compose.flatfield)
         self._max_side = config.preprocess.max_side_px

@@ -298,9 +298,7 @@ def vessel_polarity(image: np.ndarray) -> float:
 
 
 FIELD_MIN_ROWS = 16  # frames with fewer rows are not tested
-PHASE_TAPER = (
-    0.15  # cycles / px: the phase correlation's spectrum weighted by a Gaussian of this sd
-)
+PHASE_TAPER = 0.15  # cycles / px: sd of the Gaussian weighting the phase correlation's spectrum
 
 
 def field_offset(image: np.ndarray) -> tuple[float, float]:
@@ -313,8 +311,7 @@ def field_offset(image: np.ndarray) -> tuple[float, float]:
     frame's middle half: borders and burned-in overlays are fixed to the camera and would pull
     it to 0.
     """
-    # luma: in 4:2:0 video and JPEG the colour is shared by row pairs, which hides the fields
-    gray = to_gray(image, False).astype(np.float32)
+    gray = to_gray(image, False).astype(np.float32)  # luma: the offset is geometry
     h, w = gray.shape
     if h < FIELD_MIN_ROWS or w < FIELD_MIN_ROWS:
         return 0.0, 0.0
@@ -369,7 +366,7 @@ def first_field(image: np.ndarray) -> np.ndarray:
     return out
 
 
-class FieldAligner:
+class Deinterlacer:
     """Interlacing, frame by frame: each frame's field offset is measured (`field_offset`), and
     with `on` (`[preprocess] deinterlace`: the camera is interlaced) the frame is replaced by
     its first field (`first_field`): the combing goes, and every frame takes its first field's

@@ -5,7 +5,7 @@ import pytest
 from glampoints.synthetic import frame_preprocess
 from mosaic.config import PreprocessConfig
 from mosaic.preprocess import (
-    FieldAligner,
+    Deinterlacer,
     OverlayMask,
     erode_by_disc,
     field_of_view_mask,
@@ -325,7 +325,7 @@ def test_first_field_keeps_the_even_rows_and_interpolates_the_odd_ones():
 
 def test_field_aligner_deinterlaces_when_on_and_tells_an_interlaced_video_when_off():
     scene = _texture(1)
-    on, off, progressive = FieldAligner(on=True), FieldAligner(), FieldAligner()
+    on, off, progressive = Deinterlacer(on=True), Deinterlacer(), Deinterlacer()
     for i in range(6):
         step = (6.0 + i % 3, 4.0 - 2 * (i % 2))
         first, combed = _interlaced(scene, step, origin=(150 + 10 * i, 120))
