@@ -373,9 +373,10 @@ class Deinterlacer:
     pose. Off, the offsets only say whether the video looks interlaced (`looks_interlaced`:
     their median above `INTERLACED_PX`). Measured medians: 0.2-0.75 px on 16 progressive
     realistic videos, 0.05-0.18 px on the sample and the two SLO clips, 1.9 px on the
-    adaptive-optics clip (a constant line offset of its scanner), 0.6-5.1 px on 24 interlaced
-    realistic videos (half the motion between frames). Whether deinterlacing pays depends on
-    the view's sharpness more than on the offset (docs/evaluation.md), so it is not automatic."""
+    adaptive-optics clip (constant: a scanner's line offset or its cones' pattern), 0.6-5.1 px
+    on 24 interlaced realistic videos (half the motion between frames). Whether deinterlacing
+    pays depends on the view's sharpness more than on the offset (docs/evaluation.md), so it
+    is not automatic."""
 
     INTERLACED_PX = 2.0
 
