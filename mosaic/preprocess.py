@@ -355,9 +355,9 @@ def _phase_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 def first_field(image: np.ndarray) -> np.ndarray:
     """The frame's first field alone, at full size: each odd row the mean of the even rows
     around it (the last copies its neighbour). Moving the second field onto the first by its
-    measured offset leaves the rotation and zoom between the fields and a sub-pixel remainder:
-    on clean interlaced test videos that kept 3-4 px of pose error, the first field alone the
-    progressive video's 0.6-0.9 px."""
+    measured offset instead kept 3-4 px of pose error on clean interlaced test videos (the
+    fields also differ by rotation and zoom), the first field alone the progressive video's
+    0.6-0.9 px."""
     out = image.copy()
     even = image[0::2].astype(np.float32)
     n_odd = image[1::2].shape[0]
