@@ -488,13 +488,14 @@ def _answer_error(answer: dict[str, Any] | None, points: np.ndarray) -> tuple[fl
     if answer is None or answer.get("status") != "registered" or not answer["H_moving_to_fixed"]:
         return math.inf, math.inf
     xy_fixed, xy_moving = points[:, 0:2], points[:, 2:4]
-    H = np.array(answer["H_moving_to_fixed"], np.float64)
-    h_error = float(np.mean(np.linalg.norm(apply_homography(H, xy_moving) - xy_fixed, axis=1)))
+
+    def error(mapped: np.ndarray) -> float:
+        return float(np.mean(np.linalg.norm(mapped - xy_fixed, axis=1)))
+
+    h_error = error(apply_homography(np.array(answer["H_moving_to_fixed"]), xy_moving))
     if answer.get("model") != "quadratic" or not answer.get("Q_moving_to_fixed"):
         return h_error, h_error
-    Q = np.array(answer["Q_moving_to_fixed"], np.float64)
-    q_error = float(np.mean(np.linalg.norm(apply_quadratic(Q, xy_moving) - xy_fixed, axis=1)))
-    return q_error, h_error
+    return error(apply_quadratic(np.array(answer["Q_moving_to_fixed"]), xy_moving)), h_error
 
 
 def score_answers(
