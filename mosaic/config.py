@@ -125,6 +125,9 @@ class PipelineConfig:
     on_failure: str = "skip"  # stop (paper's protocol) | skip | restart (new mosaic segment)
     reanchor_after: int = 5  # skip: this many failures in a row against a mosaic of one frame
     # start it again from two later frames that register to each other (0: never)
+    new_segment_after: int = 10  # skip: after this many failures in a row against a mosaic of
+    # several frames, two later frames that register to each other start a new segment; the
+    # first segment is still tried first, so the camera coming back continues it (0: never)
     step: int = 1  # process every step-th frame
     max_frames: int = 0  # stop after this many processed frames; 0: whole video
     overlap: str = "auto"  # extract frame i+1 in a background thread while frame i registers:
@@ -273,6 +276,7 @@ RANGES: dict[tuple[str, str], Range] = {
     ("compose", "quality_threshold"): FRACTION,
     ("pipeline", "step"): AT_LEAST_1,
     ("pipeline", "reanchor_after"): AT_LEAST_0,
+    ("pipeline", "new_segment_after"): AT_LEAST_0,
     ("pipeline", "max_frames"): AT_LEAST_0,
     ("pipeline", "checkpoint_every_s"): AT_LEAST_0,
     ("keyframes", "min_overlap"): FRACTION,

@@ -343,20 +343,21 @@ class MosaicBuilder:
         self._started = time.perf_counter()
         self.overlap = OverlapTrial(config.pipeline.overlap)
         self._turns = Turns(on=False)  # `stream` sets its own
-        # failures in a row against a segment that holds only its first frame, and the last
-        # of them (re-anchoring: `_reanchor`)
+        # failures in a row, and the last of them (`_start_again`)
         self._stalled = 0
         self._last_failed: Extracted | None = None
+        self._active = 0  # index of the segment new frames go to
 
     @property
     def _segment(self) -> _Segment | None:
-        return self._segments[-1] if self._segments else None
+        return self._segments[self._active] if self._segments else None
 
     def _new_segment(self) -> _Segment:
         segment = _Segment(
             len(self._segments), Canvas(self.config.compose), make_tracker(self.config)
         )
         self._segments.append(segment)
+        self._active = segment.index
         return segment
 
     def process(
@@ -454,7 +455,12 @@ class MosaicBuilder:
         self._S = extracted.H_frame_to_work
         timer = _Timer(record)
         segment = self._segment or self._new_segment()
-        track = segment.tracker.track(record.index, features, prepared.gray.shape, timer)
+        shape = prepared.gray.shape
+        track = self._back_to_first(record.index, features, shape, timer)
+        if track is not None:
+            segment = self._segments[0]
+        else:
+            track = segment.tracker.track(record.index, features, shape, timer)
         _note_registration(record, track)
         reason = track.reason
         if reason is None:
@@ -462,7 +468,7 @@ class MosaicBuilder:
         if reason is not None:
             self._fail(record, image, prepared, features, timer, reason)
             if self.config.pipeline.on_failure == "skip":
-                track = self._reanchor(extracted, timer) or track
+                track = self._start_again(extracted, timer) or track
         self.viewer.frame(
             FrameEvent(
                 record,
@@ -573,17 +579,43 @@ class MosaicBuilder:
                 record.status = FAILED
                 record.reason = f"{reason}; started segment {segment.index}"
 
-    def _reanchor(self, failed: Extracted, timer: _Timer) -> Track | None:
-        """Start the mosaic again when no frame registers to its first one. A dark, featureless
-        or blurred first frame would otherwise leave every later frame failed (measured: a
-        magnified video that opens on a dark region, 1 of 120 frames placed). After
-        `[pipeline] reanchor_after` failures in a row against a segment that holds only its
-        first frame, the failed frame before this one becomes the segment's first frame if
-        this one registers to it; the old first frame is reported failed. Returns this
-        frame's new track (None: nothing changed)."""
-        after = self.config.pipeline.reanchor_after
+    def _back_to_first(
+        self, index: int, features: Features, shape: tuple[int, int], timer: _Timer
+    ) -> Track | None:
+        """While a later segment grows (`_start_again`), each frame is tried against the first
+        segment before it: a camera that comes back to the area mapped first continues that
+        mosaic, as it would have without the later segment. The frame's track there, or None."""
+        if self._active == 0 or self.config.pipeline.on_failure != "skip":
+            return None
+        track = self._segments[0].tracker.track(index, features, shape, timer)
+        if track.reason is not None:
+            return None
+        log.info("frame %d registers to the first segment again", index)
+        self._active = 0
+        return track
+
+    def _start_again(self, failed: Extracted, timer: _Timer) -> Track | None:
+        """After failures in a row (`skip`), start the mosaic again from the failed frame
+        before this one and this one, when they register to each other. Returns this frame's
+        new track (None: nothing changed).
+
+        - Against a segment that holds only its first frame (`[pipeline] reanchor_after`
+          failures): a dark, featureless or blurred first frame would otherwise leave every
+          later frame failed (measured: a magnified video that opens on a dark region, 1 of
+          120 frames placed). The two frames replace it; the old first frame is reported failed.
+        - Against a segment of several frames (`new_segment_after` failures): the camera has
+          left the mapped area (or the frames that map the way there do not register), and
+          every later frame would fail. The two frames start a new segment, written beside
+          the first; frames are still tried against the first segment first
+          (`_back_to_first`).
+        """
         segment = self._segment
-        if after <= 0 or segment is None or len(segment.records) != 1:
+        if segment is None:
+            return None
+        first_only = len(segment.records) == 1
+        pipeline = self.config.pipeline
+        after = pipeline.reanchor_after if first_only else pipeline.new_segment_after
+        if after <= 0:
             return None
         self._stalled += 1
         previous, self._last_failed = self._last_failed, failed
@@ -596,9 +628,11 @@ class MosaicBuilder:
         trial.commit(previous.record.index, previous.features, shape, Track(np.eye(3)))
         if trial.track(failed.record.index, failed.features, shape, timer).reason is not None:
             return None
-        dropped = segment.records[0]
-        fresh = _Segment(segment.index, Canvas(self.config.compose), make_tracker(self.config))
-        self._segments[-1] = fresh
+        if first_only:
+            fresh = _Segment(segment.index, Canvas(self.config.compose), make_tracker(self.config))
+            self._segments[segment.index] = fresh
+        else:
+            fresh = self._new_segment()
         track = None
         for frame in (previous, failed):
             assert frame.image is not None and frame.prepared is not None
@@ -610,6 +644,16 @@ class MosaicBuilder:
             )
             if reason is not None:
                 frame.record.reason = reason
+        if not first_only:
+            log.warning(
+                "frames did not register to the mosaic since frame %d; segment %d starts at "
+                "frame %d",
+                segment.records[-1].index + 1,
+                fresh.index,
+                previous.record.index,
+            )
+            return track
+        dropped = segment.records[0]
         dropped.status, dropped.segment, dropped.H_frame_to_ref = FAILED, None, None
         dropped.reason = (
             f"dropped as the mosaic's first frame: the next {after} frames did not register to it"

@@ -121,6 +121,50 @@ def test_without_reanchoring_an_unregistrable_first_frame_fails_the_video(video)
     assert statuses == ["registered"] + ["failed"] * 23
 
 
+def _left_and_back(tmp_path: Path, video) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Frames 0-11 of `video`, 16 frames of another retina (the sample turned upside down:
+    no match with the first), then frames 12-23 of `video`: the camera leaves the mapped area
+    and comes back. Images and the truth (H_frame_to_source) per input index."""
+    folder, truth = video
+    upside_down = tmp_path / "upside_down.png"
+    cv2.imwrite(str(upside_down), cv2.rotate(cv2.imread(str(SAMPLE_IMAGE)), cv2.ROTATE_180))
+    params = SynthParams(n_frames=16, size=SIZE, seed=5, nuisances=False)
+    other_truth = load_ground_truth(write_synthetic_video(upside_down, tmp_path / "b", params))
+    first = [cv2.imread(str(p)) for p in sorted(folder.glob("*.png"))]
+    second = [cv2.imread(str(p)) for p in sorted((tmp_path / "b").glob("*.png"))]
+    images = first[:12] + second + first[12:]
+    return images, truth[:12] + other_truth + truth[12:]
+
+
+def test_a_camera_that_leaves_the_mapped_area_starts_a_new_segment_and_comes_back(video, tmp_path):
+    images, truth = _left_and_back(tmp_path, video)
+    results = {}
+    for after in (4, 0):
+        builder = MosaicBuilder(_config(on_failure="skip", new_segment_after=after))
+        for index, image in enumerate(images):
+            builder.process(index, image)
+        results[after] = builder.finish()
+    frames = results[4].report["frames"]
+    statuses = [f["status"] for f in frames]
+    # 12-15 fail against the mosaic; at the 4th failure 15 registers to 14: a new segment
+    assert statuses[12:14] == ["failed"] * 2 and statuses[14:] == ["registered"] * 26
+    assert [f["segment"] for f in frames[14:28]] == [1] * 14
+    # the camera is back: frame 28 registers to the first segment, and the rest follow it
+    assert {f["segment"] for f in frames[:12] + frames[28:]} == {0}
+    assert len(results[4].segments) == 2 and results[4].main.index == 0
+    assert results[4].main.n_frames == 24
+    first, second = frames[:12] + frames[28:], frames[14:28]
+    for placed in (first, second):  # each segment against its own truth
+        errors = errors_to_first(placed, truth, SIZE)[1:]
+        assert np.mean(errors) < 3.0 and np.max(errors) < 6.0, errors
+    # without it the frames of the other area fail, and the first segment is the same
+    without = results[0].report["frames"]
+    assert [f["status"] for f in without[12:28]] == ["failed"] * 16
+    assert results[0].report["summary"]["segments"] == 1
+    for a, b in zip(first, without[:12] + without[28:], strict=True):
+        np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
+
+
 def test_stop_policy_ends_at_the_first_failure(video):
     folder, _ = video
     result = _run(folder, _config(on_failure="stop"), bad={7})
