@@ -151,7 +151,17 @@ def _config(
     return with_overrides(config, **overrides) if overrides else config
 
 
-def _print_summary(summary: dict[str, Any], output: Path, report_path: Path) -> None:
+def _segments_row(report: dict[str, Any]) -> str:
+    """The segment count; with several, each one's frames and which is the main mosaic."""
+    segments = report.get("segments") or []
+    if len(segments) < 2:
+        return str(report["summary"]["segments"])
+    sizes = " / ".join(str(s["frames"]) for s in segments)
+    return f"{len(segments)} ({sizes} frames; main mosaic: segment {report.get('main_segment')})"
+
+
+def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> None:
+    summary = report["summary"]
     rows = [
         ("frames read", summary["frames_read"]),
         ("registered", summary["registered"]),
@@ -159,7 +169,7 @@ def _print_summary(summary: dict[str, Any], output: Path, report_path: Path) -> 
         ("skipped", summary["skipped"]),
         ("frames until failure", summary["frames_until_failure"]),
         ("longest registered run", summary["longest_registered_run"]),
-        ("segments", summary["segments"]),
+        ("segments", _segments_row(report)),
         ("mean matches / inliers", f"{summary['mean_matches']} / {summary['mean_inliers']}"),
         ("quality / flagged", f"{summary.get('quality')} / {summary.get('quality_flagged', 0)}"),
         ("frames per second", summary["fps"]),
@@ -171,7 +181,11 @@ def _print_summary(summary: dict[str, Any], output: Path, report_path: Path) -> 
         rows.insert(4, ("looks interlaced", "yes (see [preprocess] deinterlace)"))
     width = max(len(name) for name, _ in rows)
     typer.echo("\n".join(f"{name:<{width}}  {value}" for name, value in rows))
-    typer.echo(f"mosaic: {output}\nreport: {report_path}")
+    typer.echo(f"mosaic: {output}")
+    for segment in report.get("segments") or []:
+        if len(report["segments"]) > 1 and segment.get("mosaic"):
+            typer.echo(f"segment {segment['index']}: {segment['mosaic']}")
+    typer.echo(f"report: {report_path}")
 
 
 def _viewer_args(
@@ -283,7 +297,7 @@ def build(
                 typer.echo("interrupted: partial mosaic and report written", err=True)
             elif run.error is not None:
                 typer.echo(f"error: {run.error}; the live mosaic and report written", err=True)
-            _print_summary(run.summary, output, report_path)
+            _print_summary(run.report, output, report_path)
             if rerun == "save":
                 typer.echo(f"recording: {rerun_target}")
     except KeyboardInterrupt:  # before the first frame or while writing: nothing to save

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from mosaic.synth import corner_error
+from mosaic.synth import SynthParams, corner_error, load_ground_truth, write_synthetic_video
+from tests.conftest import SAMPLE_IMAGE
 
 
 def crop_pair(
@@ -107,3 +109,19 @@ def locked(path):
         yield path
     finally:
         chattr(path, "-i")
+
+
+def left_and_back(
+    tmp_path: Path, folder: Path, truth: list[np.ndarray], size: tuple[int, int]
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A camera that leaves the mapped area and comes back: frames 0-11 of the video in
+    `folder` (24 frames, `truth` its H_frame_to_source), 16 frames of another retina (the
+    shipped sample upside down: no match with the first), then frames 12-23 of the video.
+    The images and the truth per input index."""
+    upside_down = tmp_path / "upside_down.png"
+    cv2.imwrite(str(upside_down), cv2.rotate(cv2.imread(str(SAMPLE_IMAGE)), cv2.ROTATE_180))
+    params = SynthParams(n_frames=16, size=size, seed=5, nuisances=False)
+    other_truth = load_ground_truth(write_synthetic_video(upside_down, tmp_path / "b", params))
+    first = [cv2.imread(str(p)) for p in sorted(folder.glob("*.png"))]
+    second = [cv2.imread(str(p)) for p in sorted((tmp_path / "b").glob("*.png"))]
+    return first[:12] + second + first[12:], truth[:12] + other_truth + truth[12:]

@@ -15,8 +15,9 @@ from typer.testing import CliRunner
 import mosaic.cli
 from mosaic import preprocess
 from mosaic.cli import app
+from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
-from tests.helpers import corner_error, crop_pair, similarity
+from tests.helpers import corner_error, crop_pair, left_and_back, similarity
 
 runner = CliRunner()
 FRAME_KEYS = {"index", "status", "H_to_canvas", "n_keypoints", "n_matches", "n_inliers", "time_ms"}
@@ -70,6 +71,30 @@ def test_build_writes_mosaic_and_report(video, tmp_path):
         (xy >= -0.5).all() and (xy[0] <= mosaic.shape[1]).all() and (xy[1] <= mosaic.shape[0]).all()
     )
     assert "frames until failure" in result.output
+
+
+def test_build_names_each_segment_when_the_camera_leaves_the_mapped_area(tmp_path):
+    size = (400, 300)
+    params = SynthParams(n_frames=24, size=size, seed=3, nuisances=False)
+    truth = load_ground_truth(write_synthetic_video(SAMPLE_IMAGE, tmp_path / "a", params))
+    images, _ = left_and_back(tmp_path, tmp_path / "a", truth, size)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for index, image in enumerate(images[:28]):  # it leaves and does not come back
+        cv2.imwrite(str(frames / f"{index:04d}.png"), image)
+    config = tmp_path / "c.toml"
+    config.write_text("[pipeline]\nnew_segment_after = 4\n")
+    out = tmp_path / "m.png"
+    args = ["build", str(frames), "-o", str(out), "--detector", "sift", "--config", str(config)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "segments                2 (12 / 14 frames; main mosaic: segment 1)" in result.output
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["summary"]["registered"] == 26 and report["main_segment"] == 1
+    for index in (0, 1):
+        path = tmp_path / f"m_seg{index:03d}.png"
+        assert f"segment {index}: {path}" in result.output and path.is_file()
+    assert cv2.imread(str(out)).shape == cv2.imread(str(tmp_path / "m_seg001.png")).shape
 
 
 def test_build_options_step_and_max_frames(video, tmp_path):
@@ -313,7 +338,6 @@ def test_build_of_the_shipped_sample_matches_its_ground_truth(tmp_path):
     """`mosaic build samples/sample.mp4` (the README's first command, default settings and
     shipped weights) places every frame within a few pixels of `samples/sample.gt.json`
     (measured: 0.97 px mean corner error, 1.75 px at worst)."""
-    from mosaic.synth import load_ground_truth
     from tests.conftest import REPO
     from tests.helpers import errors_to_first
 

@@ -16,7 +16,13 @@ from mosaic.io import Frame, Lookahead, open_frames
 from mosaic.pipeline import MosaicBuilder, OverlapTrial, Turns
 from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
-from tests.helpers import build_from_folder, corner_error, errors_to_first, similarity
+from tests.helpers import (
+    build_from_folder,
+    corner_error,
+    errors_to_first,
+    left_and_back,
+    similarity,
+)
 
 SIZE = (400, 300)
 
@@ -121,23 +127,8 @@ def test_without_reanchoring_an_unregistrable_first_frame_fails_the_video(video)
     assert statuses == ["registered"] + ["failed"] * 23
 
 
-def _left_and_back(tmp_path: Path, video) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Frames 0-11 of `video`, 16 frames of another retina (the sample turned upside down:
-    no match with the first), then frames 12-23 of `video`: the camera leaves the mapped area
-    and comes back. Images and the truth (H_frame_to_source) per input index."""
-    folder, truth = video
-    upside_down = tmp_path / "upside_down.png"
-    cv2.imwrite(str(upside_down), cv2.rotate(cv2.imread(str(SAMPLE_IMAGE)), cv2.ROTATE_180))
-    params = SynthParams(n_frames=16, size=SIZE, seed=5, nuisances=False)
-    other_truth = load_ground_truth(write_synthetic_video(upside_down, tmp_path / "b", params))
-    first = [cv2.imread(str(p)) for p in sorted(folder.glob("*.png"))]
-    second = [cv2.imread(str(p)) for p in sorted((tmp_path / "b").glob("*.png"))]
-    images = first[:12] + second + first[12:]
-    return images, truth[:12] + other_truth + truth[12:]
-
-
 def test_a_camera_that_leaves_the_mapped_area_starts_a_new_segment_and_comes_back(video, tmp_path):
-    images, truth = _left_and_back(tmp_path, video)
+    images, truth = left_and_back(tmp_path, *video, SIZE)
     results = {}
     for after in (4, 0):
         builder = MosaicBuilder(_config(on_failure="skip", new_segment_after=after))
