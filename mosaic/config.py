@@ -127,7 +127,8 @@ class PipelineConfig:
     # start it again from two later frames that register to each other (0: never)
     new_segment_after: int = 10  # skip: after this many failures in a row against a mosaic of
     # several frames, two later frames that register to each other start a new segment; the
-    # first segment is still tried first, so the camera coming back continues it (0: never)
+    # first segment is still tried first, so the camera coming back continues it, and the
+    # re-render joins the two where the frame that comes back registers to both (0: never)
     step: int = 1  # process every step-th frame
     max_frames: int = 0  # stop after this many processed frames; 0: whole video
     overlap: str = "auto"  # extract frame i+1 in a background thread while frame i registers:

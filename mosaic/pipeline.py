@@ -291,6 +291,17 @@ class Turns:
         sys.setswitchinterval(self._interval)
 
 
+@dataclass(frozen=True)
+class _Join:
+    """A later segment met again: the frame that came back to the first segment also
+    registered to it (`_back_to_first`), which ties the two segments' references."""
+
+    segment: int  # the later segment
+    frame: int  # input index of the frame placed in the first segment
+    reference: int  # input index of the later segment's frame it registered to
+    H_frame_to_reference: np.ndarray  # decoded pixels
+
+
 @dataclass
 class _Segment:
     """One mosaic under construction: its canvas, its tracker and the frames placed on it."""
@@ -347,6 +358,7 @@ class MosaicBuilder:
         self._stalled = 0
         self._last_failed: Extracted | None = None
         self._active = 0  # index of the segment new frames go to
+        self._joins: list[_Join] = []  # later segments the camera came back from
 
     @property
     def _segment(self) -> _Segment | None:
@@ -591,7 +603,15 @@ class MosaicBuilder:
         if track.reason is not None:
             return None
         log.info("frame %d registers to the first segment again", index)
+        later = self._segments[self._active]
         self._active = 0
+        back = later.tracker.track(index, features, shape, timer)
+        if back.H_frame_to_ref is not None and back.reference_index is not None:
+            poses = {r.index: r.H_frame_to_ref for r in later.records}
+            H_reference = poses.get(back.reference_index)
+            if H_reference is not None:
+                H = np.linalg.solve(H_reference, self._to_frame(back.H_frame_to_ref))
+                self._joins.append(_Join(later.index, index, back.reference_index, H / H[2, 2]))
         return track
 
     def _start_again(self, failed: Extracted, timer: _Timer) -> Track | None:
@@ -672,10 +692,45 @@ class MosaicBuilder:
         poses = {r.index: segment.tracker.pose(r.index) for r in segment.records}
         segment.refined_poses = {k: self._to_frame(H) for k, H in poses.items() if H is not None}
 
+    def _join_segments(self) -> None:
+        """Put the frames of each later segment the camera came back from (`_Join`) into the
+        first one, at their refined poses carried over by the frame that registered to both;
+        the segments left are numbered again in order. Only before a re-render: the live
+        canvases cannot be merged."""
+        first = self._segments[0] if self._segments else None
+        for join in self._joins:
+            later = self._segments[join.segment]
+            if first is None or not first.refined_poses or not later.refined_poses:
+                continue
+            needed = {join.reference, *(r.index for r in later.records)}
+            if join.frame not in first.refined_poses or not needed <= later.refined_poses.keys():
+                continue
+            H_later_to_first = first.refined_poses[join.frame] @ np.linalg.inv(
+                later.refined_poses[join.reference] @ join.H_frame_to_reference
+            )
+            for record in later.records:
+                H = H_later_to_first @ later.refined_poses[record.index]
+                first.refined_poses[record.index] = H / H[2, 2]
+                record.H_frame_to_ref = first.refined_poses[record.index]
+            log.info(
+                "segment %d joins the first (frame %d registered to both)", later.index, join.frame
+            )
+            first.records = sorted(first.records + later.records, key=lambda r: r.index)
+            later.records, later.refined_poses = [], None
+            later.canvas = Canvas(self.config.compose)
+        self._joins = []
+        self._segments = [s for s in self._segments if s.records or s is first]
+        for number, segment in enumerate(self._segments):
+            segment.index = number
+            for record in segment.records:
+                record.segment = number
+        self._active = 0
+
     def _rerender(self, reread: Reread) -> None:
         """Render refined segments again from the video: one or two more passes over its
         frames (`compose.render_segments`), with the whole video's overlay, side-band and
         flat-field estimates."""
+        self._join_segments()
         todo = {s.index: s for s in self._segments if s.refined_poses and s.records}
         owner = {r.index for s in todo.values() for r in s.records}
         interlaced = {r.index for r in self.records if r.deinterlaced}

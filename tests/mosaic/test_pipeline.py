@@ -156,6 +156,43 @@ def test_a_camera_that_leaves_the_mapped_area_starts_a_new_segment_and_comes_bac
         np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
 
 
+def test_a_new_segment_the_camera_comes_back_from_joins_the_first():
+    """Crops of the sample along a known path: 10 frames, a 6-frame blink (noise) while the
+    camera moves far right, then back left across the first frames' area. The frames after
+    the blink start a second segment; the frame that registers to the first segment again
+    also registers to the second, which ties them: re-rendered, one mosaic, every frame at
+    its true place."""
+    sample = cv2.imread(str(SAMPLE_IMAGE))
+    xs = [150 + 15 * i for i in range(10)] + [0] * 6 + list(range(800, 385, -15))
+    y, (w, h) = 550, SIZE
+    rng = np.random.default_rng(0)
+    images = [
+        rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
+        if 10 <= i < 16
+        else np.ascontiguousarray(sample[y : y + h, x : x + w])
+        for i, x in enumerate(xs)
+    ]
+    truth = [np.array([[1.0, 0, x], [0, 1, y], [0, 0, 1]]) for x in xs]
+
+    def run(reread):
+        builder = MosaicBuilder(_config(on_failure="skip", new_segment_after=4))
+        for index, image in enumerate(images):
+            builder.process(index, image)
+        return builder.finish(reread=reread)
+
+    live = run(None)  # no re-render: the live canvases cannot be joined
+    assert len(live.segments) == 2
+    joined = run(lambda: enumerate(images))
+    frames = joined.report["frames"]
+    statuses = [f["status"] for f in frames]
+    assert statuses[10:16] == ["failed"] * 6 and statuses.count("registered") == len(xs) - 6
+    assert len(joined.segments) == 1 and joined.report["summary"]["segments"] == 1
+    assert {f["segment"] for f in frames if f["status"] == "registered"} == {0}
+    placed = [f for f in frames if f["status"] == "registered"]
+    errors = errors_to_first(placed, truth, SIZE)[1:]
+    assert np.max(errors) < 2.0, errors
+
+
 def test_stop_policy_ends_at_the_first_failure(video):
     folder, _ = video
     result = _run(folder, _config(on_failure="stop"), bad={7})
