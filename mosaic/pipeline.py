@@ -359,6 +359,7 @@ class MosaicBuilder:
         self._last_failed: Extracted | None = None
         self._active = 0  # index of the segment new frames go to
         self._joins: list[_Join] = []  # later segments the camera came back from
+        self._joined_stats: list[dict[str, Any]] = []  # tracker stats of segments joined
 
     @property
     def _segment(self) -> _Segment | None:
@@ -716,6 +717,7 @@ class MosaicBuilder:
                 "segment %d joins the first (frame %d registered to both)", later.index, join.frame
             )
             first.records = sorted(first.records + later.records, key=lambda r: r.index)
+            self._joined_stats.append(later.tracker.stats())
             later.records, later.refined_poses = [], None
             later.canvas = Canvas(self.config.compose)
         self._joins = []
@@ -880,7 +882,7 @@ def _model_counts(records: list[FrameRecord]) -> dict[str, int]:
 
 def _tracking_summary(builder: MosaicBuilder) -> dict[str, Any]:
     """Keyframes, relocalisations, loop closures and refinement residuals over all segments."""
-    per_segment = [s.tracker.stats() for s in builder._segments]
+    per_segment = [s.tracker.stats() for s in builder._segments] + builder._joined_stats
     totals: dict[str, Any] = {}
     counted = ("keyframes", "relocalised", "placed_by_previous", "loop_closures", "loop_attempts")
     for key in (*counted, "extra_links", "tracked_registrations", "perspective_relaxed"):
@@ -891,6 +893,7 @@ def _tracking_summary(builder: MosaicBuilder) -> dict[str, Any]:
     if any(refinements):
         totals["refinement"] = refinements
     totals["rerendered"] = any(s.refined_poses for s in builder._segments)
+    totals["joined_segments"] = len(builder._joined_stats)
     return totals
 
 

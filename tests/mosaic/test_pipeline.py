@@ -187,6 +187,8 @@ def test_a_new_segment_the_camera_comes_back_from_joins_the_first():
     statuses = [f["status"] for f in frames]
     assert statuses[10:16] == ["failed"] * 6 and statuses.count("registered") == len(xs) - 6
     assert len(joined.segments) == 1 and joined.report["summary"]["segments"] == 1
+    assert joined.report["summary"]["tracking"]["joined_segments"] == 1
+    assert live.report["summary"]["tracking"]["joined_segments"] == 0
     assert {f["segment"] for f in frames if f["status"] == "registered"} == {0}
     placed = [f for f in frames if f["status"] == "registered"]
     errors = errors_to_first(placed, truth, SIZE)[1:]
