@@ -699,6 +699,7 @@ class MosaicBuilder:
         the segments left are numbered again in order. Only before a re-render: the live
         canvases cannot be merged."""
         first = self._segments[0] if self._segments else None
+        joined: set[int] = set()
         for join in self._joins:
             later = self._segments[join.segment]
             if first is None or not first.refined_poses or not later.refined_poses:
@@ -720,13 +721,15 @@ class MosaicBuilder:
             self._joined_stats.append(later.tracker.stats())
             later.records, later.refined_poses = [], None
             later.canvas = Canvas(self.config.compose)
+            joined.add(later.index)
         self._joins = []
-        self._segments = [s for s in self._segments if s.records or s is first]
+        if not joined:
+            return
+        self._segments = [s for s in self._segments if s.index not in joined]
         for number, segment in enumerate(self._segments):
             segment.index = number
             for record in segment.records:
                 record.segment = number
-        self._active = 0
 
     def _rerender(self, reread: Reread) -> None:
         """Render refined segments again from the video: one or two more passes over its
