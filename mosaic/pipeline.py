@@ -645,6 +645,8 @@ class MosaicBuilder:
         assert previous.features is not None and previous.prepared is not None
         assert failed.features is not None and failed.prepared is not None
         shape = failed.prepared.gray.shape
+        if not first_only and (resumed := self._resume(failed, shape, timer)) is not None:
+            return resumed
         trial = make_tracker(self.config)
         trial.commit(previous.record.index, previous.features, shape, Track(np.eye(3)))
         if trial.track(failed.record.index, failed.features, shape, timer).reason is not None:
@@ -685,6 +687,30 @@ class MosaicBuilder:
             previous.record.index,
         )
         return track
+
+    def _resume(self, failed: Extracted, shape: tuple[int, int], timer: _Timer) -> Track | None:
+        """Before another segment starts: a camera lost again may be back over the area of a
+        later segment it left, so the frame is tried against each (the most recent first);
+        where it registers, that segment goes on. Once per start, so nearly free."""
+        assert failed.image is not None and failed.prepared is not None
+        assert failed.features is not None
+        for other in reversed(self._segments[1:]):
+            if other.index == self._active or not other.records:
+                continue
+            track = other.tracker.track(failed.record.index, failed.features, shape, timer)
+            if track.reason is not None:
+                continue
+            reason = self._place(
+                other, failed.record, failed.image, failed.prepared, failed.features, track, timer
+            )
+            if reason is not None:
+                continue
+            _note_registration(failed.record, track)
+            self._active = other.index
+            index = failed.record.index
+            log.warning("frame %d registers to segment %d again; it goes on", index, other.index)
+            return track
+        return None
 
     def _refine(self, segment: _Segment) -> None:
         """Global refinement of the segment's poses (keyframe strategy)."""

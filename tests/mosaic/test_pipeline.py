@@ -195,6 +195,36 @@ def test_a_new_segment_the_camera_comes_back_from_joins_the_first():
     assert np.max(errors) < 2.0, errors
 
 
+def test_a_camera_back_over_a_later_segment_continues_it():
+    """Crops of the sample: area A, a blink (dark frames: skipped), area B (far right), a
+    blink, A again, a blink, B again. B's frames fail against A's mosaic until the 4th starts
+    a segment; on the second visit the 4th continues B's segment instead of starting a third."""
+    sample = cv2.imread(str(SAMPLE_IMAGE))
+    blink = [None] * 6
+    xs = [150 + 15 * i for i in range(10)] + blink + list(range(800, 906, 15)) + blink
+    xs += list(range(285, 220, -15)) + blink + list(range(905, 799, -15))
+    y, (w, h) = 550, SIZE
+    builder = MosaicBuilder(_config(on_failure="skip", new_segment_after=4))
+    for index, x in enumerate(xs):
+        if x is None:
+            image = np.zeros((h, w, 3), np.uint8)
+        else:
+            image = np.ascontiguousarray(sample[y : y + h, x : x + w])
+        builder.process(index, image)
+    result = builder.finish()
+    frames = result.report["frames"]
+    segments = [f["segment"] for f, x in zip(frames, xs, strict=True) if x is not None]
+    assert segments == [0] * 10 + [None] * 2 + [1] * 6 + [0] * 5 + [None] * 3 + [1] * 5
+    assert len(result.segments) == 2
+    statuses = [f["status"] for f, x in zip(frames, xs, strict=True) if x is None]
+    assert statuses == ["skipped"] * 18
+    truth = [np.array([[1.0, 0, x or 0], [0, 1, y], [0, 0, 1]]) for x in xs]
+    for k in (0, 1):
+        placed = [f for f in frames if f["segment"] == k and f["status"] == "registered"]
+        errors = errors_to_first(placed, truth, SIZE)[1:]
+        assert np.max(errors) < 2.0, (k, errors)
+
+
 def test_stop_policy_ends_at_the_first_failure(video):
     folder, _ = video
     result = _run(folder, _config(on_failure="stop"), bad={7})
