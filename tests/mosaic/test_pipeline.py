@@ -156,23 +156,27 @@ def test_a_camera_that_leaves_the_mapped_area_starts_a_new_segment_and_comes_bac
         np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
 
 
+def _along(xs: list, blink) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Frames of the sample cropped at (x, 550) along `xs` (None: a frame from `blink()`, a
+    blink), and their truth (H_frame_to_source, pure translations)."""
+    sample = cv2.imread(str(SAMPLE_IMAGE))
+    y, (w, h) = 550, SIZE
+    images = [
+        blink() if x is None else np.ascontiguousarray(sample[y : y + h, x : x + w]) for x in xs
+    ]
+    truth = [np.array([[1.0, 0, x or 0], [0, 1, y], [0, 0, 1]]) for x in xs]
+    return images, truth
+
+
 def test_a_new_segment_the_camera_comes_back_from_joins_the_first():
     """Crops of the sample along a known path: 10 frames, a 6-frame blink (noise) while the
     camera moves far right, then back left across the first frames' area. The frames after
     the blink start a second segment; the frame that registers to the first segment again
     also registers to the second, which ties them: re-rendered, one mosaic, every frame at
     its true place."""
-    sample = cv2.imread(str(SAMPLE_IMAGE))
-    xs = [150 + 15 * i for i in range(10)] + [0] * 6 + list(range(800, 385, -15))
-    y, (w, h) = 550, SIZE
+    xs = [150 + 15 * i for i in range(10)] + [None] * 6 + list(range(800, 385, -15))
     rng = np.random.default_rng(0)
-    images = [
-        rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
-        if 10 <= i < 16
-        else np.ascontiguousarray(sample[y : y + h, x : x + w])
-        for i, x in enumerate(xs)
-    ]
-    truth = [np.array([[1.0, 0, x], [0, 1, y], [0, 0, 1]]) for x in xs]
+    images, truth = _along(xs, lambda: rng.integers(0, 255, (*SIZE[::-1], 3), dtype=np.uint8))
 
     def run(reread):
         builder = MosaicBuilder(_config(on_failure="skip", new_segment_after=4))
@@ -199,17 +203,12 @@ def test_a_camera_back_over_a_later_segment_continues_it():
     """Crops of the sample: area A, a blink (dark frames: skipped), area B (far right), a
     blink, A again, a blink, B again. B's frames fail against A's mosaic until the 4th starts
     a segment; on the second visit the 4th continues B's segment instead of starting a third."""
-    sample = cv2.imread(str(SAMPLE_IMAGE))
     blink = [None] * 6
     xs = [150 + 15 * i for i in range(10)] + blink + list(range(800, 906, 15)) + blink
     xs += list(range(285, 220, -15)) + blink + list(range(905, 799, -15))
-    y, (w, h) = 550, SIZE
+    images, truth = _along(xs, lambda: np.zeros((*SIZE[::-1], 3), np.uint8))
     builder = MosaicBuilder(_config(on_failure="skip", new_segment_after=4))
-    for index, x in enumerate(xs):
-        if x is None:
-            image = np.zeros((h, w, 3), np.uint8)
-        else:
-            image = np.ascontiguousarray(sample[y : y + h, x : x + w])
+    for index, image in enumerate(images):
         builder.process(index, image)
     result = builder.finish()
     frames = result.report["frames"]
@@ -218,7 +217,6 @@ def test_a_camera_back_over_a_later_segment_continues_it():
     assert len(result.segments) == 2
     statuses = [f["status"] for f, x in zip(frames, xs, strict=True) if x is None]
     assert statuses == ["skipped"] * 18
-    truth = [np.array([[1.0, 0, x or 0], [0, 1, y], [0, 0, 1]]) for x in xs]
     for k in (0, 1):
         placed = [f for f in frames if f["segment"] == k and f["status"] == "registered"]
         errors = errors_to_first(placed, truth, SIZE)[1:]
