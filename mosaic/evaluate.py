@@ -901,6 +901,9 @@ class VideoResult:
     oracle_fidelity: float = math.nan  # the same for the mean of frames placed by the truth
     oracle_good_area: float = math.nan
     model_counts: dict[str, int] = field(default_factory=dict)  # registered frames per model
+    # mosaic segments (several: the camera left the mapped area; `registered` counts them all,
+    # `accurate` and the errors are of the first placed frame's segment)
+    segments: int = 1
     errors: list[tuple[int, float]] = field(default_factory=list, repr=False)  # (index, px)
     step_errors: list[tuple[int, float]] = field(default_factory=list, repr=False)
 
@@ -1268,6 +1271,7 @@ def evaluate_video(
         **_quality_vs_error(frames, errors),
         **scores,
         model_counts=_model_counts(frames),
+        segments=summary["segments"],
         errors=sorted(errors.items()) if errors else [],
         step_errors=sorted(steps.items()),
     )
@@ -1294,6 +1298,7 @@ VIDEO_MEAN_KEYS = (
     "oracle_good_area",
     "mean_inliers",
     "fps",
+    "segments",
 )
 VIDEO_COLUMNS = (
     ("detector", "detector", ""),

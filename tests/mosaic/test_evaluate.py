@@ -30,6 +30,7 @@ from mosaic.evaluate import (
     _unique_stems,
     _video_errors,
     evaluate_pair,
+    evaluate_video,
     format_models,
     format_video_tables,
     make_extractors,
@@ -40,6 +41,7 @@ from mosaic.evaluate import (
     summarize_videos,
     write_video_outputs,
 )
+from mosaic.features import FeatureExtractor
 from mosaic.io import sample_image_path
 from mosaic.synth import (
     SynthParams,
@@ -48,6 +50,8 @@ from mosaic.synth import (
     relative_homographies,
     write_synthetic_video,
 )
+from tests.conftest import SAMPLE_IMAGE
+from tests.helpers import left_and_back
 from tests.mosaic.test_datasets import make_fire_fixture
 
 runner = CliRunner()
@@ -551,3 +555,27 @@ def test_register_answers_scored_by_glampoints_evaluate(tmp_path, fundus):
     )
     assert result.exit_code == 2 and "not a `mosaic register --pairs` answer" in result.output
     assert "Traceback" not in result.output
+
+
+def test_a_video_that_leaves_the_mapped_area_counts_every_segment_as_registered(tmp_path):
+    """`registered` counts the frames of every segment; `accurate` and the errors are of the
+    first placed frame's segment (the frames of the other area are placed, but not against the
+    first frame)."""
+    size = (400, 300)
+    params = SynthParams(n_frames=24, size=size, seed=3, nuisances=False)
+    truth = load_ground_truth(write_synthetic_video(SAMPLE_IMAGE, tmp_path / "a", params))
+    images, truth = left_and_back(tmp_path, tmp_path / "a", truth, size)
+    clip = tmp_path / "clip"
+    clip.mkdir()
+    for index, image in enumerate(images[:28]):  # it leaves and does not come back
+        cv2.imwrite(str(clip / f"{index:04d}.png"), image)
+    frames = [{"index": i, "H_frame_to_source": H.tolist()} for i, H in enumerate(truth[:28])]
+    gt_path_for(clip).write_text(json.dumps({"frames": frames}))
+    config = with_overrides(
+        Config(), features={"detector": "sift"}, pipeline={"new_segment_after": 4}
+    )
+    result = evaluate_video(clip, config, FeatureExtractor(config.features), fidelity=False)
+    assert result.segments == 2 and result.registered == 26
+    assert result.registered_fraction == pytest.approx(26 / 28)
+    assert result.accurate_fraction == pytest.approx(12 / 28)  # the first segment's 12 frames
+    assert [i for i, _ in result.errors] == list(range(12)) and result.max_error_px < 3.0
