@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import contextlib
+import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from mosaic.synth import SynthParams, corner_error, load_ground_truth, write_synthetic_video
+from mosaic.synth import (
+    SynthParams,
+    corner_error,
+    gt_path_for,
+    load_ground_truth,
+    write_synthetic_video,
+)
 from tests.conftest import SAMPLE_IMAGE
 
 
@@ -125,3 +132,19 @@ def left_and_back(
     first = [cv2.imread(str(p)) for p in sorted(folder.glob("*.png"))]
     second = [cv2.imread(str(p)) for p in sorted((tmp_path / "b").glob("*.png"))]
     return first[:12] + second + first[12:], truth[:12] + other_truth + truth[12:]
+
+
+def leaving_clip(tmp_path: Path, size: tuple[int, int]) -> Path:
+    """A folder of 28 frames (with its `.gt.json`) whose camera leaves the mapped area and does
+    not come back: frames 0-11 of a synthetic video of the sample, then 16 frames of another
+    retina (`left_and_back` without the way back)."""
+    params = SynthParams(n_frames=24, size=size, seed=3, nuisances=False)
+    truth = load_ground_truth(write_synthetic_video(SAMPLE_IMAGE, tmp_path / "a", params))
+    images, truth = left_and_back(tmp_path, tmp_path / "a", truth, size)
+    clip = tmp_path / "clip"
+    clip.mkdir()
+    for index, image in enumerate(images[:28]):
+        cv2.imwrite(str(clip / f"{index:04d}.png"), image)
+    frames = [{"index": i, "H_frame_to_source": H.tolist()} for i, H in enumerate(truth[:28])]
+    gt_path_for(clip).write_text(json.dumps({"frames": frames}))
+    return clip

@@ -15,9 +15,9 @@ from typer.testing import CliRunner
 import mosaic.cli
 from mosaic import preprocess
 from mosaic.cli import app
-from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
+from mosaic.synth import load_ground_truth
 from tests.conftest import SAMPLE_IMAGE
-from tests.helpers import corner_error, crop_pair, left_and_back, similarity
+from tests.helpers import corner_error, crop_pair, leaving_clip, similarity
 
 runner = CliRunner()
 FRAME_KEYS = {"index", "status", "H_to_canvas", "n_keypoints", "n_matches", "n_inliers", "time_ms"}
@@ -74,14 +74,7 @@ def test_build_writes_mosaic_and_report(video, tmp_path):
 
 
 def test_build_names_each_segment_when_the_camera_leaves_the_mapped_area(tmp_path):
-    size = (400, 300)
-    params = SynthParams(n_frames=24, size=size, seed=3, nuisances=False)
-    truth = load_ground_truth(write_synthetic_video(SAMPLE_IMAGE, tmp_path / "a", params))
-    images, _ = left_and_back(tmp_path, tmp_path / "a", truth, size)
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for index, image in enumerate(images[:28]):  # it leaves and does not come back
-        cv2.imwrite(str(frames / f"{index:04d}.png"), image)
+    frames = leaving_clip(tmp_path, (400, 300))
     config = tmp_path / "c.toml"
     config.write_text("[pipeline]\nnew_segment_after = 4\n")
     out = tmp_path / "m.png"

@@ -50,8 +50,7 @@ from mosaic.synth import (
     relative_homographies,
     write_synthetic_video,
 )
-from tests.conftest import SAMPLE_IMAGE
-from tests.helpers import left_and_back
+from tests.helpers import leaving_clip
 from tests.mosaic.test_datasets import make_fire_fixture
 
 runner = CliRunner()
@@ -561,16 +560,7 @@ def test_a_video_that_leaves_the_mapped_area_counts_every_segment_as_registered(
     """`registered` counts the frames of every segment; `accurate` and the errors are of the
     first placed frame's segment (the frames of the other area are placed, but not against the
     first frame)."""
-    size = (400, 300)
-    params = SynthParams(n_frames=24, size=size, seed=3, nuisances=False)
-    truth = load_ground_truth(write_synthetic_video(SAMPLE_IMAGE, tmp_path / "a", params))
-    images, truth = left_and_back(tmp_path, tmp_path / "a", truth, size)
-    clip = tmp_path / "clip"
-    clip.mkdir()
-    for index, image in enumerate(images[:28]):  # it leaves and does not come back
-        cv2.imwrite(str(clip / f"{index:04d}.png"), image)
-    frames = [{"index": i, "H_frame_to_source": H.tolist()} for i, H in enumerate(truth[:28])]
-    gt_path_for(clip).write_text(json.dumps({"frames": frames}))
+    clip = leaving_clip(tmp_path, (400, 300))
     config = with_overrides(
         Config(), features={"detector": "sift"}, pipeline={"new_segment_after": 4}
     )
