@@ -182,8 +182,9 @@ def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> N
     width = max(len(name) for name, _ in rows)
     typer.echo("\n".join(f"{name:<{width}}  {value}" for name, value in rows))
     typer.echo(f"mosaic: {output}")
-    for segment in report.get("segments") or []:
-        if len(report["segments"]) > 1 and segment.get("mosaic"):
+    segments = report.get("segments") or []
+    for segment in segments if len(segments) > 1 else []:
+        if segment.get("mosaic"):
             typer.echo(f"segment {segment['index']}: {segment['mosaic']}")
     typer.echo(f"report: {report_path}")
 

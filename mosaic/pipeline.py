@@ -691,7 +691,8 @@ class MosaicBuilder:
     def _resume(self, failed: Extracted, shape: tuple[int, int], timer: _Timer) -> Track | None:
         """Before another segment starts: a camera lost again may be back over the area of a
         later segment it left, so the frame is tried against each (the most recent first);
-        where it registers, that segment goes on. Once per start, so nearly free."""
+        where it registers, that segment goes on. Tried where a new segment would be (each
+        failure from the `new_segment_after`-th on), one registration per later segment."""
         assert failed.image is not None and failed.prepared is not None
         assert failed.features is not None
         for other in reversed(self._segments[1:]):
