@@ -720,38 +720,42 @@ class MosaicBuilder:
         poses = {r.index: segment.tracker.pose(r.index) for r in segment.records}
         segment.refined_poses = {k: self._to_frame(H) for k, H in poses.items() if H is not None}
 
-    def _join_segments(self) -> None:
-        """Put the frames of each later segment the camera came back from (`_Join`) into the
-        first one, at their refined poses carried over by the frame that registered to both;
-        the segments left are numbered again in order. Only before a re-render: the live
-        canvases cannot be merged."""
+    def _joined_poses(self) -> dict[int, dict[int, np.ndarray]]:
+        """The refined poses, in the first segment's frame, of the frames of each later segment
+        the camera came back from (`_Join`), carried over by the frame that registered to both:
+        {later segment: {frame: H_frame_to_ref}}."""
         first = self._segments[0] if self._segments else None
-        joined: set[int] = set()
+        joined: dict[int, dict[int, np.ndarray]] = {}
         for join in self._joins:
             later = self._segments[join.segment]
-            if first is None or not first.refined_poses or not later.refined_poses:
+            if join.segment in joined or first is None or not first.refined_poses:
                 continue
             needed = {join.reference, *(r.index for r in later.records)}
-            if join.frame not in first.refined_poses or not needed <= later.refined_poses.keys():
+            if not later.refined_poses or not needed <= later.refined_poses.keys():
+                continue
+            if join.frame not in first.refined_poses:
                 continue
             H_later_to_first = first.refined_poses[join.frame] @ np.linalg.inv(
                 later.refined_poses[join.reference] @ join.H_frame_to_reference
             )
-            for record in later.records:
-                H = H_later_to_first @ later.refined_poses[record.index]
-                first.refined_poses[record.index] = H / H[2, 2]
-                record.H_frame_to_ref = first.refined_poses[record.index]
-            log.info(
-                "segment %d joins the first (frame %d registered to both)", later.index, join.frame
-            )
+            poses = (H_later_to_first @ later.refined_poses[r.index] for r in later.records)
+            joined[later.index] = {
+                r.index: H / H[2, 2] for r, H in zip(later.records, poses, strict=True)
+            }
+        return joined
+
+    def _join(self, joined: dict[int, dict[int, np.ndarray]]) -> None:
+        """Put the frames of the `joined` later segments into the first at their poses there
+        (`_joined_poses`), once the first has been rendered with them; the segments left are
+        numbered again in order."""
+        first = self._segments[0]
+        assert first.refined_poses is not None
+        for k, poses in joined.items():
+            later = self._segments[k]
+            log.info("segment %d joins the first", k)
+            first.refined_poses.update(poses)
             first.records = sorted(first.records + later.records, key=lambda r: r.index)
             self._joined_stats.append(later.tracker.stats())
-            later.records, later.refined_poses = [], None
-            later.canvas = Canvas(self.config.compose)
-            joined.add(later.index)
-        self._joins = []
-        if not joined:
-            return
         self._segments = [s for s in self._segments if s.index not in joined]
         for number, segment in enumerate(self._segments):
             segment.index = number
@@ -761,12 +765,20 @@ class MosaicBuilder:
     def _rerender(self, reread: Reread) -> None:
         """Render refined segments again from the video: one or two more passes over its
         frames (`compose.render_segments`), with the whole video's overlay, side-band and
-        flat-field estimates."""
-        self._join_segments()
-        todo = {s.index: s for s in self._segments if s.refined_poses and s.records}
-        owner = {r.index for s in todo.values() for r in s.records}
-        interlaced = {r.index for r in self.records if r.deinterlaced}
+        flat-field estimates. Later segments the camera came back from are rendered into the
+        first (`_joined_poses`); they join it only where that rendering succeeds."""
+        joined, self._joins = self._joined_poses(), []
+        todo = {
+            s.index: s
+            for s in self._segments
+            if s.refined_poses and s.records and s.index not in joined
+        }
         poses = {k: dict(s.refined_poses or {}) for k, s in todo.items()}
+        for later in joined.values():
+            poses[0].update(later)
+        owner = {r.index for s in todo.values() for r in s.records}
+        owner.update(index for later in joined.values() for index in later)
+        interlaced = {r.index for r in self.records if r.deinterlaced}
         self._photometry.refresh()
         # only the field-of-view mask of `prepare` is needed here
         mask_config = dataclasses.replace(self.config.preprocess, clahe=False, bilateral=False)
@@ -793,9 +805,14 @@ class MosaicBuilder:
         rendered = render_segments(self.config.compose, frames, poses, self._photometry, score)
         for k, result in rendered.items():
             segment, canvas = todo[k], result.canvas
-            if canvas.n_frames != len(segment.records):
+            expected = len(segment.records)
+            if k == 0:
+                expected += sum(len(later) for later in joined.values())
+            if canvas.n_frames != expected:
                 log.warning("segment %d not re-rendered: the input changed on re-reading", k)
                 continue
+            if k == 0 and joined:
+                self._join(joined)
             segment.canvas = canvas
             for record in segment.records:
                 record.H_frame_to_ref = segment.refined_poses[record.index]  # type: ignore[index]

@@ -13,7 +13,7 @@ import torch
 
 from mosaic.config import Config, with_overrides
 from mosaic.io import Frame, Lookahead, open_frames
-from mosaic.pipeline import MosaicBuilder, OverlapTrial, Turns
+from mosaic.pipeline import MosaicBuilder, MosaicResult, OverlapTrial, Turns
 from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import (
@@ -168,35 +168,63 @@ def _along(xs: list, blink) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return images, truth
 
 
-def test_a_new_segment_the_camera_comes_back_from_joins_the_first():
+def _out_and_back() -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Crops of the sample along a known path: 10 frames, a 6-frame blink (noise) while the
-    camera moves far right, then back left across the first frames' area. The frames after
-    the blink start a second segment; the frame that registers to the first segment again
-    also registers to the second, which ties them: re-rendered, one mosaic, every frame at
-    its true place."""
+    camera moves far right, then back left across the first frames' area."""
     xs = [150 + 15 * i for i in range(10)] + [None] * 6 + list(range(800, 385, -15))
     rng = np.random.default_rng(0)
-    images, truth = _along(xs, lambda: rng.integers(0, 255, (*SIZE[::-1], 3), dtype=np.uint8))
+    return _along(xs, lambda: rng.integers(0, 255, (*SIZE[::-1], 3), dtype=np.uint8))
 
-    def run(reread):
-        builder = MosaicBuilder(_config(on_failure="skip", new_segment_after=4))
-        for index, image in enumerate(images):
-            builder.process(index, image)
-        return builder.finish(reread=reread)
 
-    live = run(None)  # no re-render: the live canvases cannot be joined
+def _build_segments(images: list[np.ndarray], reread) -> MosaicResult:
+    builder = MosaicBuilder(_config(on_failure="skip", new_segment_after=4))
+    for index, image in enumerate(images):
+        builder.process(index, image)
+    return builder.finish(reread=reread)
+
+
+def test_a_new_segment_the_camera_comes_back_from_joins_the_first():
+    """`_out_and_back`: the frames after the blink start a second segment; the frame that
+    registers to the first segment again also registers to the second, which ties them:
+    re-rendered, one mosaic, every frame at its true place."""
+    images, truth = _out_and_back()
+    live = _build_segments(images, None)  # no re-render: the live canvases cannot be joined
     assert len(live.segments) == 2
-    joined = run(lambda: enumerate(images))
+    joined = _build_segments(images, lambda: enumerate(images))
     frames = joined.report["frames"]
     statuses = [f["status"] for f in frames]
-    assert statuses[10:16] == ["failed"] * 6 and statuses.count("registered") == len(xs) - 6
+    assert statuses[10:16] == ["failed"] * 6 and statuses.count("registered") == len(images) - 6
     assert len(joined.segments) == 1 and joined.report["summary"]["segments"] == 1
+    assert joined.main.n_frames == len(images) - 6
     assert joined.report["summary"]["tracking"]["joined_segments"] == 1
     assert live.report["summary"]["tracking"]["joined_segments"] == 0
     assert {f["segment"] for f in frames if f["status"] == "registered"} == {0}
     placed = [f for f in frames if f["status"] == "registered"]
     errors = errors_to_first(placed, truth, SIZE)[1:]
     assert np.max(errors) < 2.0, errors
+
+
+def test_segments_stay_apart_where_the_first_cannot_be_rendered_again():
+    """The input changes on re-reading (frame 3 unreadable): the first segment keeps its live
+    canvas, and the segment the camera came back from is not joined to it but kept, its
+    frames on its own canvas at their own poses."""
+    images, truth = _out_and_back()
+
+    def reread():
+        return ((i, None if i == 3 else image) for i, image in enumerate(images))
+
+    result = _build_segments(images, reread)
+    frames = result.report["frames"]
+    assert result.report["summary"]["tracking"]["joined_segments"] == 0
+    assert len(result.segments) == 2 and result.report["summary"]["segments"] == 2
+    registered = [f for f in frames if f["status"] == "registered"]
+    assert sum(m.n_frames for m in result.segments) == len(registered) == len(images) - 6
+    later = [f for f in registered if f["segment"] == 1]
+    assert len(later) == result.segments[1].n_frames > 0
+    for k in (0, 1):
+        placed = [f for f in registered if f["segment"] == k]
+        errors = errors_to_first(placed, truth, SIZE)[1:]
+        assert np.max(errors) < 2.0, (k, errors)
 
 
 def test_a_camera_back_over_a_later_segment_continues_it():
