@@ -1326,6 +1326,67 @@ VIDEO_COLUMNS = (
 )
 
 
+# paired differences between methods (`compare_methods`): (key, header, format spec)
+DIFFERENCE_KEYS = (
+    ("accurate_fraction", "accurate", ".3f"),
+    ("registered_fraction", "registered", ".3f"),
+    ("until_failure_share", "until failure", ".3f"),  # frames_until_failure / frames
+    ("mean_error_px", "error px", ".2f"),
+)
+BOOTSTRAP_SAMPLES = 2000
+
+
+def _video_value(result: VideoResult, key: str) -> float:
+    if key == "until_failure_share":
+        return result.frames_until_failure / result.frames if result.frames else math.nan
+    return float(getattr(result, key))
+
+
+def compare_methods(
+    results: Sequence[VideoResult], samples: int = BOOTSTRAP_SAMPLES, seed: int = 0
+) -> list[dict[str, Any]]:
+    """Each method (detector/strategy) against the run's first, paired over the videos both
+    ran: the mean difference and its 95 % bootstrap interval (videos resampled). Single
+    drifting videos swing by tenths with small changes, so on a few videos a difference whose
+    interval holds 0 is no difference; pairing removes what the videos themselves vary by."""
+    methods = list(dict.fromkeys(r.detector for r in results))
+    if len(methods) < 2:
+        return []
+    by_run = {(r.detector, r.video): r for r in results}
+    base = methods[0]
+    rng = np.random.default_rng(seed)
+    rows = []
+    for method in methods[1:]:
+        videos = [v for m, v in by_run if m == method and (base, v) in by_run]
+        row: dict[str, Any] = {"method": method, "against": base, "videos": len(videos)}
+        for key, _, _ in DIFFERENCE_KEYS:
+            pairs = [(by_run[method, v], by_run[base, v]) for v in videos]
+            d = np.array([_video_value(a, key) - _video_value(b, key) for a, b in pairs])
+            d = d[np.isfinite(d)]
+            row[key] = float(d.mean()) if len(d) else math.nan
+            low = high = math.nan
+            if len(d) >= 2:
+                means = d[rng.integers(0, len(d), (samples, len(d)))].mean(axis=1)
+                low, high = (float(x) for x in np.percentile(means, [2.5, 97.5]))
+            row[f"{key}_low"], row[f"{key}_high"] = low, high
+        rows.append(row)
+    return rows
+
+
+def format_differences(rows: Sequence[dict[str, Any]]) -> str:
+    """The table of `compare_methods`: 'mean [low, high]' per measure."""
+    cells = []
+    for row in rows:
+        cell: dict[str, Any] = {"method": row["method"], "videos": row["videos"]}
+        for key, _, spec in DIFFERENCE_KEYS:
+            mean, low, high = (_fmt(row[k], f"+{spec}") for k in (key, f"{key}_low", f"{key}_high"))
+            cell[key] = mean if math.isnan(row[f"{key}_low"]) else f"{mean} [{low}, {high}]"
+        cells.append(cell)
+    columns = [("method", "method", ""), ("videos", "videos", "d")]
+    columns += [(key, header, "") for key, header, _ in DIFFERENCE_KEYS]
+    return format_table(cells, columns)
+
+
 def _model_columns(counts: dict[str, float]) -> dict[str, float]:
     """{"model_<name>": count} for the CSV, every model of MOTION_MODELS first (0 if absent)."""
     merged = {**dict.fromkeys(MOTION_MODELS, 0), **counts}
@@ -1364,12 +1425,19 @@ def format_video_tables(results: Sequence[VideoResult], summary: Sequence[dict[s
         for r in results
     ]
     means = [{**row, "models": format_models(_summary_models(row), ".1f")} for row in summary]
-    return (
+    text = (
         "Per video (models: registered frames per motion model)\n"
         + format_table(per_video, VIDEO_COLUMNS)
         + "\n\nMean over videos\n"
         + format_table(means, VIDEO_COLUMNS)
     )
+    differences = compare_methods(results)
+    if differences:
+        text += (
+            f"\n\nAgainst {differences[0]['against']}, paired over the same videos: mean "
+            "difference [95 % bootstrap interval over videos]\n" + format_differences(differences)
+        )
+    return text
 
 
 def _summary_models(row: dict[str, Any]) -> dict[str, float]:
@@ -1428,7 +1496,8 @@ def write_video_outputs(
     out_dir: str | Path,
     meta: dict[str, Any] | None = None,
 ) -> list[Path]:
-    """videos.csv (per video), video_summary.csv / video_evaluation.json and the plots."""
+    """videos.csv (per video), video_summary.csv, video_differences.csv (`compare_methods`,
+    with two methods or more) / video_evaluation.json and the plots."""
     out = _prepare_out(out_dir)
     rows = [
         {
@@ -1438,9 +1507,13 @@ def write_video_outputs(
         for r in results
     ]
     written = [write_csv(out / "videos.csv", rows), write_csv(out / "video_summary.csv", summary)]
+    differences = compare_methods(results)
+    if differences:
+        written.append(write_csv(out / "video_differences.csv", differences))
     document = {
         "meta": meta or {},
         "summary": list(summary),
+        "differences": differences,
         "videos": [dataclasses.asdict(r) for r in results],
     }
     written.append(write_json(out / "video_evaluation.json", _json_safe(document)))

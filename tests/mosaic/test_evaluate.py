@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import shutil
@@ -29,6 +30,7 @@ from mosaic.evaluate import (
     _step_errors,
     _unique_stems,
     _video_errors,
+    compare_methods,
     evaluate_pair,
     evaluate_video,
     format_models,
@@ -338,6 +340,60 @@ def _video_result(detector: str, **values) -> VideoResult:
         **counts,
         **{**base, **values},
     )
+
+
+def test_methods_are_compared_paired_over_the_same_videos(tmp_path):
+    """12 videos that differ widely (accurate 0.2-1.0); sift is better on each by ~0.05, orb
+    better on half and worse on half by 0.2. Pairing over videos puts sift's interval tight
+    around its gain, orb's around 0."""
+    rng = np.random.default_rng(3)
+    base = rng.uniform(0.2, 0.8, 12)
+    gain = 0.05 + rng.normal(0.0, 0.01, 12)
+    results = []
+    for i in range(12):
+        video = f"/videos/v{i}.mp4"
+        for method, accurate, error, until in (
+            ("glampoints/keyframes", base[i], 5.0, 6),
+            ("sift/keyframes", base[i] + gain[i], 4.0, 5),
+            ("orb/keyframes", base[i] + (0.2 if i % 2 else -0.2), 5.0, 6),
+        ):
+            run = _video_result(method, accurate_fraction=accurate, mean_error_px=error)
+            results.append(dataclasses.replace(run, video=video, frames_until_failure=until))
+    results.append(_video_result("sift/keyframes"))  # a video the first method did not run
+    sift, orb = compare_methods(results)
+    assert sift["method"] == "sift/keyframes" and sift["against"] == "glampoints/keyframes"
+    assert sift["videos"] == 12 and orb["videos"] == 12
+    assert sift["accurate_fraction"] == pytest.approx(gain.mean())
+    low, high = sift["accurate_fraction_low"], sift["accurate_fraction_high"]
+    assert 0.04 < low < gain.mean() < high < 0.06  # the videos' own spread does not widen it
+    assert sift["mean_error_px"] == pytest.approx(-1.0)
+    assert sift["mean_error_px_low"] == pytest.approx(-1.0) == sift["mean_error_px_high"]
+    assert sift["until_failure_share"] == pytest.approx(-0.1)
+    assert orb["accurate_fraction"] == pytest.approx(0.0, abs=1e-12)
+    assert orb["accurate_fraction_low"] < -0.05 and orb["accurate_fraction_high"] > 0.05
+    assert compare_methods(results) == compare_methods(results)  # seeded: the same each run
+
+    text = format_video_tables(results, summarize_videos(results))
+    assert "Against glampoints/keyframes, paired over the same videos" in text
+    line = next(x for x in text.splitlines() if x.startswith("sift/keyframes") and "[" in x)
+    assert f"{gain.mean():+.3f} [{low:+.3f}, {high:+.3f}]" in line
+    assert "-1.00 [-1.00, -1.00]" in line
+    write_video_outputs(results, summarize_videos(results), tmp_path)
+    with (tmp_path / "video_differences.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["method"] for r in rows] == ["sift/keyframes", "orb/keyframes"]
+    assert float(rows[0]["accurate_fraction_low"]) == pytest.approx(low)
+    document = json.loads((tmp_path / "video_evaluation.json").read_text())
+    assert document["differences"][1]["method"] == "orb/keyframes"
+
+
+def test_one_method_has_nothing_to_compare(tmp_path):
+    results = [_video_result("sift/chain")]
+    assert compare_methods(results) == []
+    assert "paired" not in format_video_tables(results, summarize_videos(results))
+    write_video_outputs(results, summarize_videos(results), tmp_path)
+    assert not (tmp_path / "video_differences.csv").exists()
+    assert json.loads((tmp_path / "video_evaluation.json").read_text())["differences"] == []
 
 
 def test_video_tables_and_files_carry_step_errors_and_models(tmp_path):
