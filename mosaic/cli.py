@@ -720,11 +720,23 @@ def evaluate(
             "(fidelity, good area) next to the oracle (frames placed by the truth).",
         ),
     ] = True,
+    against: Annotated[
+        Path | None,
+        typer.Option(
+            help="An earlier `mosaic evaluate --out` folder: each method is also compared with "
+            "itself there, paired over the videos both runs hold (e.g. before / after a change).",
+        ),
+    ] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Compare detectors and strategies on videos: frames until failure, accuracy vs
-    VIDEO.gt.json, drift, speed."""
-    from mosaic.evaluate import format_video_tables, parse_detectors, run_video_evaluation
+    VIDEO.gt.json, drift, speed; paired differences with bootstrap intervals."""
+    from mosaic.evaluate import (
+        format_video_tables,
+        load_video_results,
+        parse_detectors,
+        run_video_evaluation,
+    )
 
     _setup_logging(verbose)
     with _user_errors(), logging_redirect_tqdm():
@@ -735,6 +747,7 @@ def evaluate(
         names = parse_detectors(detector)
         if detector is not None:
             _require_detectors(config, names)
+        previous = load_video_results(against) if against is not None else []
         results, summary = run_video_evaluation(
             inputs,
             config,
@@ -744,8 +757,9 @@ def evaluate(
             progress=True,
             strategies=strategies,
             fidelity=fidelity,
+            previous=previous,
         )
-        typer.echo(format_video_tables(results, summary))
+        typer.echo(format_video_tables(results, summary, previous))
         typer.echo(f"tables and plots: {out}")
 
 

@@ -1342,47 +1342,89 @@ def _video_value(result: VideoResult, key: str) -> float:
     return float(getattr(result, key))
 
 
+def _paired(
+    pairs: Sequence[tuple[VideoResult, VideoResult]],
+    method: str,
+    against: str,
+    rng: np.random.Generator,
+    samples: int,
+) -> dict[str, Any]:
+    """The mean difference (first of each pair minus second) per measure, and its 95 %
+    bootstrap interval over the pairs (videos resampled)."""
+    row: dict[str, Any] = {"method": method, "against": against, "videos": len(pairs)}
+    for key, _, _ in DIFFERENCE_KEYS:
+        d = np.array([_video_value(a, key) - _video_value(b, key) for a, b in pairs])
+        d = d[np.isfinite(d)]
+        row[key] = float(d.mean()) if len(d) else math.nan
+        low = high = math.nan
+        if len(d) >= 2:
+            means = d[rng.integers(0, len(d), (samples, len(d)))].mean(axis=1)
+            low, high = (float(x) for x in np.percentile(means, [2.5, 97.5]))
+        row[f"{key}_low"], row[f"{key}_high"] = low, high
+    return row
+
+
 def compare_methods(
-    results: Sequence[VideoResult], samples: int = BOOTSTRAP_SAMPLES, seed: int = 0
+    results: Sequence[VideoResult],
+    previous: Sequence[VideoResult] = (),
+    samples: int = BOOTSTRAP_SAMPLES,
+    seed: int = 0,
 ) -> list[dict[str, Any]]:
-    """Each method (detector/strategy) against the run's first, paired over the videos both
-    ran: the mean difference and its 95 % bootstrap interval (videos resampled). Single
-    drifting videos swing by tenths with small changes, so on a few videos a difference whose
-    interval holds 0 is no difference; pairing removes what the videos themselves vary by."""
-    methods = list(dict.fromkeys(r.detector for r in results))
-    if len(methods) < 2:
-        return []
-    by_run = {(r.detector, r.video): r for r in results}
-    base = methods[0]
+    """Each method (detector/strategy) against the run's first, and against itself in a
+    `previous` run (`load_video_results`), paired over the videos both ran: the mean
+    difference and its 95 % bootstrap interval (videos resampled). Single drifting videos
+    swing by tenths with small changes, so on a few videos a difference whose interval holds
+    0 is no difference; pairing removes what the videos themselves vary by."""
     rng = np.random.default_rng(seed)
+    methods = list(dict.fromkeys(r.detector for r in results))
+    by_run = {(r.detector, r.video): r for r in results}
     rows = []
     for method in methods[1:]:
+        base = methods[0]
         videos = [v for m, v in by_run if m == method and (base, v) in by_run]
-        row: dict[str, Any] = {"method": method, "against": base, "videos": len(videos)}
-        for key, _, _ in DIFFERENCE_KEYS:
-            pairs = [(by_run[method, v], by_run[base, v]) for v in videos]
-            d = np.array([_video_value(a, key) - _video_value(b, key) for a, b in pairs])
-            d = d[np.isfinite(d)]
-            row[key] = float(d.mean()) if len(d) else math.nan
-            low = high = math.nan
-            if len(d) >= 2:
-                means = d[rng.integers(0, len(d), (samples, len(d)))].mean(axis=1)
-                low, high = (float(x) for x in np.percentile(means, [2.5, 97.5]))
-            row[f"{key}_low"], row[f"{key}_high"] = low, high
-        rows.append(row)
+        pairs = [(by_run[method, v], by_run[base, v]) for v in videos]
+        rows.append(_paired(pairs, method, base, rng, samples))
+    before = {(r.detector, _video_key(r.video, previous)): r for r in previous}
+    for method in methods if previous else []:
+        runs = [r for r in results if r.detector == method]
+        keys = [(method, _video_key(r.video, results)) for r in runs]
+        pairs = [(r, before[k]) for r, k in zip(runs, keys, strict=True) if k in before]
+        rows.append(_paired(pairs, method, f"{method} (previous run)", rng, samples))
     return rows
+
+
+def _video_key(video: str, run: Sequence[VideoResult]) -> str:
+    """How a video is matched across runs: its file name where the run holds no two of that
+    name (runs started from other folders name the same video by other paths), else its path."""
+    name = Path(video).name
+    same = {r.video for r in run if Path(r.video).name == name}
+    return name if len(same) == 1 else video
+
+
+def load_video_results(path: Path) -> list[VideoResult]:
+    """The per-video results of an earlier `mosaic evaluate` (its `--out` folder or its
+    video_evaluation.json), for `compare_methods`."""
+    file = path / "video_evaluation.json" if path.is_dir() else path
+    try:
+        videos = json.loads(file.read_text())["videos"]
+        fields = {f.name for f in dataclasses.fields(VideoResult)}
+        # JSON wrote nan as null
+        entries = [{k: math.nan if v is None else v for k, v in e.items()} for e in videos]
+        return [VideoResult(**{k: v for k, v in e.items() if k in fields}) for e in entries]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"not the output of `mosaic evaluate` on videos: {path} ({exc})") from exc
 
 
 def format_differences(rows: Sequence[dict[str, Any]]) -> str:
     """The table of `compare_methods`: 'mean [low, high]' per measure."""
     cells = []
     for row in rows:
-        cell: dict[str, Any] = {"method": row["method"], "videos": row["videos"]}
+        cell: dict[str, Any] = {k: row[k] for k in ("method", "against", "videos")}
         for key, _, spec in DIFFERENCE_KEYS:
             mean, low, high = (_fmt(row[k], f"+{spec}") for k in (key, f"{key}_low", f"{key}_high"))
             cell[key] = mean if math.isnan(row[f"{key}_low"]) else f"{mean} [{low}, {high}]"
         cells.append(cell)
-    columns = [("method", "method", ""), ("videos", "videos", "d")]
+    columns = [("method", "method", ""), ("against", "against", ""), ("videos", "videos", "d")]
     columns += [(key, header, "") for key, header, _ in DIFFERENCE_KEYS]
     return format_table(cells, columns)
 
@@ -1413,8 +1455,13 @@ def summarize_videos(results: Sequence[VideoResult]) -> list[dict[str, Any]]:
     return rows
 
 
-def format_video_tables(results: Sequence[VideoResult], summary: Sequence[dict[str, Any]]) -> str:
-    """Per-video tables (one per detector) and the mean over videos."""
+def format_video_tables(
+    results: Sequence[VideoResult],
+    summary: Sequence[dict[str, Any]],
+    previous: Sequence[VideoResult] = (),
+) -> str:
+    """Per-video tables (one per detector), the mean over videos, and the paired differences
+    (`compare_methods`: against the first method, and against a `previous` run)."""
     per_video = [
         {
             **dataclasses.asdict(r),
@@ -1431,11 +1478,11 @@ def format_video_tables(results: Sequence[VideoResult], summary: Sequence[dict[s
         + "\n\nMean over videos\n"
         + format_table(means, VIDEO_COLUMNS)
     )
-    differences = compare_methods(results)
+    differences = compare_methods(results, previous)
     if differences:
         text += (
-            f"\n\nAgainst {differences[0]['against']}, paired over the same videos: mean "
-            "difference [95 % bootstrap interval over videos]\n" + format_differences(differences)
+            "\n\nPaired over the same videos: mean difference [95 % bootstrap interval over "
+            "videos]\n" + format_differences(differences)
         )
     return text
 
@@ -1495,6 +1542,7 @@ def write_video_outputs(
     summary: Sequence[dict[str, Any]],
     out_dir: str | Path,
     meta: dict[str, Any] | None = None,
+    previous: Sequence[VideoResult] = (),
 ) -> list[Path]:
     """videos.csv (per video), video_summary.csv, video_differences.csv (`compare_methods`,
     with two methods or more) / video_evaluation.json and the plots."""
@@ -1507,7 +1555,7 @@ def write_video_outputs(
         for r in results
     ]
     written = [write_csv(out / "videos.csv", rows), write_csv(out / "video_summary.csv", summary)]
-    differences = compare_methods(results)
+    differences = compare_methods(results, previous)
     if differences:
         written.append(write_csv(out / "video_differences.csv", differences))
     document = {
@@ -1530,8 +1578,10 @@ def run_video_evaluation(
     progress: bool = False,
     strategies: Sequence[str] = ("keyframes", "chain"),
     fidelity: bool = True,
+    previous: Sequence[VideoResult] = (),
 ) -> tuple[list[VideoResult], list[dict[str, Any]]]:
-    """Evaluate every detector with every strategy on every video; write tables and plots.
+    """Evaluate every detector with every strategy on every video; write tables and plots
+    (with `previous`, an earlier run's results, the differences against it too).
 
     Each run's report goes to `reports/<video stem>__<detector>__<strategy>.json` in `out_dir`
     (listed in the same order as the results under the JSON's `meta.reports`). With
@@ -1567,5 +1617,5 @@ def run_video_evaluation(
         "reports": reports,
         "fidelity": fidelity,
     }
-    write_video_outputs(results, summary, out_dir, meta)
+    write_video_outputs(results, summary, out_dir, meta, previous)
     return results, summary

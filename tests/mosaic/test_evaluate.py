@@ -35,6 +35,7 @@ from mosaic.evaluate import (
     evaluate_video,
     format_models,
     format_video_tables,
+    load_video_results,
     make_extractors,
     parse_detectors,
     read_answers,
@@ -374,7 +375,7 @@ def test_methods_are_compared_paired_over_the_same_videos(tmp_path):
     assert compare_methods(results) == compare_methods(results)  # seeded: the same each run
 
     text = format_video_tables(results, summarize_videos(results))
-    assert "Against glampoints/keyframes, paired over the same videos" in text
+    assert "Paired over the same videos: mean difference [95 % bootstrap interval" in text
     line = next(x for x in text.splitlines() if x.startswith("sift/keyframes") and "[" in x)
     assert f"{gain.mean():+.3f} [{low:+.3f}, {high:+.3f}]" in line
     assert "-1.00 [-1.00, -1.00]" in line
@@ -385,6 +386,40 @@ def test_methods_are_compared_paired_over_the_same_videos(tmp_path):
     assert float(rows[0]["accurate_fraction_low"]) == pytest.approx(low)
     document = json.loads((tmp_path / "video_evaluation.json").read_text())
     assert document["differences"][1]["method"] == "orb/keyframes"
+
+
+def test_a_run_is_compared_with_an_earlier_one_video_by_video(tmp_path):
+    """`--against`: the earlier run's results read back from its folder; each method paired
+    with itself there over the videos both hold, matched by file name (the earlier run was
+    started from another folder)."""
+    before, after = [], []
+    for i in range(6):
+        run = _video_result("sift/keyframes", accurate_fraction=0.5 + 0.05 * i)
+        before.append(dataclasses.replace(run, video=f"old/place/v{i}.mp4", quality_rho=math.nan))
+        if i < 5:  # the last video is not in the new run
+            better = dataclasses.replace(run, accurate_fraction=run.accurate_fraction + 0.1)
+            after.append(dataclasses.replace(better, video=f"v{i}.mp4"))
+    write_video_outputs(before, summarize_videos(before), tmp_path / "before")
+    previous = load_video_results(tmp_path / "before")
+    assert [r.video for r in previous] == [r.video for r in before]
+    assert math.isnan(previous[0].quality_rho)  # JSON's null back to nan
+    [row] = compare_methods(after, previous)
+    assert row["against"] == "sift/keyframes (previous run)" and row["videos"] == 5
+    assert row["accurate_fraction"] == pytest.approx(0.1)
+    assert row["accurate_fraction_low"] == pytest.approx(0.1)
+    text = format_video_tables(after, summarize_videos(after), previous)
+    assert "sift/keyframes (previous run)" in text and "+0.100 [+0.100, +0.100]" in text
+
+    with pytest.raises(InputError, match="not the output of `mosaic evaluate`"):
+        load_video_results(tmp_path / "nothing here")
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"videos": [{"detector": "x"}]}')
+    with pytest.raises(InputError, match=r"bad\.json"):
+        load_video_results(bad)
+    result = CliRunner().invoke(
+        mosaic_app, ["evaluate", str(tmp_path), "--against", str(tmp_path / "nothing here")]
+    )
+    assert result.exit_code == 2 and "not the output of `mosaic evaluate`" in result.output
 
 
 def test_one_method_has_nothing_to_compare(tmp_path):
