@@ -32,6 +32,7 @@ import json
 import logging
 import math
 import time
+from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1384,21 +1385,23 @@ def compare_methods(
         videos = [v for m, v in by_run if m == method and (base, v) in by_run]
         pairs = [(by_run[method, v], by_run[base, v]) for v in videos]
         rows.append(_paired(pairs, method, base, rng, samples))
-    before = {(r.detector, _video_key(r.video, previous)): r for r in previous}
+    key_before, key_now = _video_keys(previous), _video_keys(results)
+    before = {(r.detector, key_before[r.video]): r for r in previous}
     for method in methods if previous else []:
         runs = [r for r in results if r.detector == method]
-        keys = [(method, _video_key(r.video, results)) for r in runs]
+        keys = [(method, key_now[r.video]) for r in runs]
         pairs = [(r, before[k]) for r, k in zip(runs, keys, strict=True) if k in before]
         rows.append(_paired(pairs, method, f"{method} (previous run)", rng, samples))
     return rows
 
 
-def _video_key(video: str, run: Sequence[VideoResult]) -> str:
-    """How a video is matched across runs: its file name where the run holds no two of that
-    name (runs started from other folders name the same video by other paths), else its path."""
-    name = Path(video).name
-    same = {r.video for r in run if Path(r.video).name == name}
-    return name if len(same) == 1 else video
+def _video_keys(run: Sequence[VideoResult]) -> dict[str, str]:
+    """How each video of a run is matched across runs: by its file name where the run holds
+    no other video of that name (runs started from other folders name the same video by other
+    paths), else by its path."""
+    videos = {r.video for r in run}
+    names = Counter(Path(v).name for v in videos)
+    return {v: Path(v).name if names[Path(v).name] == 1 else v for v in videos}
 
 
 def load_video_results(path: Path) -> list[VideoResult]:
