@@ -1356,7 +1356,8 @@ def _paired(
     for key, _, _ in DIFFERENCE_KEYS:
         d = np.array([_video_value(a, key) - _video_value(b, key) for a, b in pairs])
         d = d[np.isfinite(d)]
-        row[key] = float(d.mean()) if len(d) else math.nan
+        # rounded below float noise: equal runs print +0.000, not -0.000
+        row[key] = round(float(d.mean()), 12) + 0.0 if len(d) else math.nan
         low = high = math.nan
         if len(d) >= 2:
             means = d[rng.integers(0, len(d), (samples, len(d)))].mean(axis=1)
