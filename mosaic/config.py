@@ -59,13 +59,14 @@ class FeaturesConfig:
     max_keypoints: int = 1000  # strongest kept per frame
     nms_window_px: int = 10  # GLAMpoints non-maximum suppression window (paper: 10)
     score_threshold: float = 0.0  # GLAMpoints minimum score of a keypoint
-    descriptor_size_px: float = 6.0  # keypoint diameter given to the SIFT descriptor
+    descriptor_size_px: float = 9.0  # keypoint diameter given to the SIFT descriptor (video:
+    # 9 px holds on blurred, compressed, magnified frames; 6 px was best on clean pairs)
     detect_scale: float = 1.0  # detect on the frame resized by this (<= 1: faster, coarser)
     weights: str = ""  # GLAMpoints weights file; empty: the weights shipped in the package
     device: str = "cpu"  # where GLAMpoints runs its network: cpu | cuda (a CUDA GPU if present)
     extra_scale: float = 0.0  # GLAMpoints: also detect on the frame resized by this (0: off)
     precision: str = "auto"  # GLAMpoints network on CPU: float32 | bfloat16 | auto
-    border_margin_px: float = 8.0  # keypoints this far inside the view's mask and the frame's
+    border_margin_px: float = 12.0  # keypoints this far inside the view's mask and the frame's
     # edge: a descriptor that sees the border (fixed to the camera) matches the camera's place
 
 

@@ -250,12 +250,15 @@ def test_textured_equals_the_variance_of_the_blurred_float_image(shape):
 
 
 def test_keypoints_keep_off_the_view_border_that_is_fixed_to_the_camera(fundus):
-    """A faint, blurred view of the retina moved 11 px under a fixed aperture: the only
-    structure that matches is the aperture's border, which has not moved. Keypoints up to the
-    border (margin 0) make a registration that passes the failure rules 10 px off (measured
-    35 inliers); with the default margin no keypoint lies within 8 px of the mask's edge, the
-    still matches are a third as many and the registration fails instead of misplacing. The
-    points are dropped after detection: those left are the margin-0 points, not weaker ones."""
+    """A faint, blurred view of the retina moved 11 px under a fixed aperture: the structure
+    that matches best is the aperture's border, which has not moved. Keypoints up to the
+    border (margin 0) make a registration that passes the failure rules 11 px off (measured
+    44 inliers, at zero motion); with the default margin no keypoint lies within 12 px of the
+    mask's edge, the still matches are a quarter as many and the registration either fails or
+    follows the retina (measured: 30 inliers, 2.3 px off; with the 6 px descriptor and an 8 px
+    margin it failed, with the 9 px descriptor and an 8 px margin the border pulled it 5 px
+    off). The points are dropped after detection: those left are the margin-0 points, not
+    weaker ones."""
     from mosaic.matching import match_descriptors
     from mosaic.registration import estimate_motion
 
@@ -284,7 +287,7 @@ def test_keypoints_keep_off_the_view_border_that_is_fixed_to_the_camera(fundus):
     assert reg_0.ok and np.abs(reg_0.H_cur_to_prev[:2, 2] - [11.0, -5.0]).max() > 5.0
     fa, still, reg = results[config.features.border_margin_px]
     assert still <= still_0 / 2, (still, still_0)
-    assert not reg.ok or np.abs(reg.H_cur_to_prev[:2, 2] - [11.0, -5.0]).max() < 2.0
+    assert not reg.ok or np.abs(reg.H_cur_to_prev[:2, 2] - [11.0, -5.0]).max() < 3.0
     inside = cv2.distanceTransform(np.pad(views[0].mask, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
     xi, yi = np.round(fa.xy).astype(int).T
     assert inside[yi, xi].min() >= config.features.border_margin_px - 1  # a pixel's rounding
