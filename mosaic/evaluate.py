@@ -1381,8 +1381,8 @@ def compare_methods(
     methods = list(dict.fromkeys(r.detector for r in results))
     by_run = {(r.detector, r.video): r for r in results}
     rows = []
+    base = methods[0] if methods else ""
     for method in methods[1:]:
-        base = methods[0]
         videos = [v for m, v in by_run if m == method and (base, v) in by_run]
         pairs = [(by_run[method, v], by_run[base, v]) for v in videos]
         rows.append(_paired(pairs, method, base, rng, samples))
