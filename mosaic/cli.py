@@ -30,7 +30,7 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     from glampoints.detector import WeightsError
-    from mosaic.config import Config, load_config, with_overrides
+    from mosaic.config import Config, for_photographs, load_config, with_overrides
     from mosaic.errors import InputError, MosaicError
     from mosaic.features import DETECTORS, FeatureExtractor
     from mosaic.io import (
@@ -618,7 +618,7 @@ def register(
             warp = check_output_path(warp)
         if matches is not None:
             matches = check_output_path(matches)
-        config = _config(config_path, detector)
+        config = for_photographs(_config(config_path, detector))
         extractor = FeatureExtractor(config.features)
         if pairs is not None:
             from tqdm import tqdm

@@ -44,7 +44,7 @@ from tqdm import tqdm
 
 from glampoints import metrics as gm
 from glampoints.detector import WeightsError
-from mosaic.config import Config, RegistrationConfig, with_overrides
+from mosaic.config import Config, RegistrationConfig, for_photographs, with_overrides
 from mosaic.datasets import (
     FIRE_CATEGORIES,
     Pair,
@@ -848,6 +848,7 @@ def run_pair_evaluation(
     """
     if scale is None:
         scale = FIRE_SCALE if dataset.format == "fire" else 1.0
+    config = for_photographs(config)
     if not 0.0 < scale <= 4.0:
         raise InputError(f"scale must be in (0, 4], got {scale}")
     _prepare_out(out_dir)

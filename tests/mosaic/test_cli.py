@@ -254,6 +254,33 @@ def test_synth_curved_pairs_writes_a_fire_folder_with_exact_control_points(tmp_p
     _one_line_error(runner.invoke(app, [*args[:4], "320x200", "-o", str(out)]), "square")
 
 
+def test_register_describes_photographs_at_the_photo_descriptor_size(fundus, tmp_path):
+    """`mosaic register` takes `photo_descriptor_size_px` (sharp photographs), not the video
+    frames' `descriptor_size_px`: changing the video's size leaves the answer as it is, the
+    photographs' size changes the matches."""
+    H_b_to_a = similarity(4.0, 1.05, 15.0, -8.0, center=(240, 160))
+    a, b = crop_pair(fundus, H_b_to_a, origin=(500, 450), size=(480, 320))
+    cv2.imwrite(str(tmp_path / "a.png"), a)
+    cv2.imwrite(str(tmp_path / "b.png"), b)
+    outputs = {}
+    for name, table in (
+        ("default", ""),
+        ("video", "descriptor_size_px = 30.0\n"),
+        ("photo", "photo_descriptor_size_px = 30.0\n"),
+    ):
+        config = tmp_path / f"{name}.toml"
+        config.write_text(f"[features]\n{table}")
+        args = ["register", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--json"]
+        result = runner.invoke(app, [*args, "--config", str(config)])
+        assert result.exit_code == 0, result.output
+        outputs[name] = json.loads(result.stdout)
+        H = np.array(outputs[name]["H_moving_to_fixed"])
+        assert corner_error(H, H_b_to_a, (480, 320)) < 1.0, name
+    assert outputs["video"]["n_inliers"] == outputs["default"]["n_inliers"]
+    assert outputs["video"]["n_matches"] == outputs["default"]["n_matches"]
+    assert outputs["photo"]["n_matches"] != outputs["default"]["n_matches"]
+
+
 def test_register_curved_pair_prints_the_quadratic_and_warps(tmp_path):
     from mosaic.curved import curved_pair
     from mosaic.registration import apply_quadratic

@@ -6,7 +6,14 @@ from pathlib import Path
 
 import pytest
 
-from mosaic.config import Config, config_from_dict, load_config, value_range, with_overrides
+from mosaic.config import (
+    Config,
+    config_from_dict,
+    for_photographs,
+    load_config,
+    value_range,
+    with_overrides,
+)
 from mosaic.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -109,3 +116,14 @@ def test_ransac_confidence_is_a_probability_below_one(value):
     with pytest.raises(ConfigError, match=r"\[registration\] confidence"):
         config_from_dict({"registration": {"confidence": value}})
     assert config_from_dict({"registration": {"confidence": 0.99}}).registration.confidence == 0.99
+
+
+def test_photographs_are_described_at_their_own_size():
+    """Photograph pairs use `photo_descriptor_size_px` where video uses `descriptor_size_px`;
+    nothing else changes."""
+    config = with_overrides(Config(), features={"photo_descriptor_size_px": 5.0})
+    photos = for_photographs(config)
+    assert config.features.descriptor_size_px == 9.0
+    assert photos.features.descriptor_size_px == 5.0
+    assert dataclasses.replace(photos.features, descriptor_size_px=9.0) == config.features
+    assert photos.registration == config.registration and photos.pipeline == config.pipeline
