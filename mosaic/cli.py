@@ -444,6 +444,14 @@ def synth(
             "later (the truth is the even rows' pose)."
         ),
     ] = False,
+    lens_reflexes: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            help="N bright reflections of the fundus lens that stay near one place of the frame "
+            "(a few px of wander) while the retina moves under them.",
+        ),
+    ] = 0,
     curved_pairs: Annotated[
         int,
         typer.Option(
@@ -471,8 +479,9 @@ def synth(
     with _user_errors():
         if hard and realistic:
             raise InputError("choose one of --hard and --realistic")
-        if curved_pairs and interlaced:
-            raise InputError("--interlaced is for videos, not --curved-pairs")
+        if curved_pairs and (interlaced or lens_reflexes):
+            given = "--interlaced" if interlaced else "--lens-reflexes"
+            raise InputError(f"{given} is for videos, not --curved-pairs")
         if curved_pairs:
             _curved_pairs(
                 image or sample_image_path(), output, curved_pairs, seed, size, realistic, turn_deg
@@ -485,6 +494,7 @@ def synth(
             seed=seed,
             nuisances=not clean,
             interlaced=interlaced,
+            lens_reflexes=lens_reflexes,
         )
         source = pick_source(image or sample_image_path(), seed)
         gt = write_synthetic_video(source, output, params)

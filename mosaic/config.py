@@ -39,6 +39,10 @@ class PreprocessConfig:
     overlay_mask: bool = True  # no keypoints on burned-in overlays (pixels that never change)
     overlay_max_range: int = 2  # grey levels a pixel may vary over the video and count as static
     overlay_margin_px: int = 6  # margin kept away from a static overlay
+    reflex_mask: bool = True  # no keypoints on lens reflexes: bright spots that stay in one
+    # place of the frame while the retina moves (their edges would match where the camera was)
+    reflex_brightness: int = 50  # grey levels above its surroundings a reflex keeps in every
+    # recent frame
     max_side_px: int = 800  # larger frames are registered downscaled to this longer side (0: off)
     fov_diameter_px: int = 512  # `mosaic register`: a photograph showing the whole retina is
     # registered with the retina's diameter at this (the detector's training images: 460-640
@@ -257,6 +261,7 @@ RANGES: dict[tuple[str, str], Range] = {
     ("preprocess", "fov_erode_px"): AT_LEAST_0,
     ("preprocess", "overlay_max_range"): GREY_LEVEL,
     ("preprocess", "overlay_margin_px"): AT_LEAST_0,
+    ("preprocess", "reflex_brightness"): Range(1, 255),
     ("preprocess", "max_side_px"): Range(64, off=True),
     ("preprocess", "fov_diameter_px"): Range(64, off=True),
     ("features", "max_keypoints"): AT_LEAST_1,

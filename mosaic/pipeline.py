@@ -40,6 +40,7 @@ from mosaic.preprocess import (
     FrameGate,
     OverlayMask,
     Prepared,
+    ReflexMask,
     first_field,
     inverted_as,
     pair_polarities,
@@ -333,6 +334,7 @@ class MosaicBuilder:
         self._segments: list[_Segment] = []
         self._gate = FrameGate(config.gating)
         self._overlay = OverlayMask(config.preprocess)
+        self._reflexes = ReflexMask(config.preprocess)
         self._fields = Deinterlacer(config.preprocess.deinterlace)
         compose = config.compose
         self._photometry = VideoPhotometry(compose.side_bands, compose.flatfield)
@@ -415,6 +417,7 @@ class MosaicBuilder:
         prepared = timer.run("preprocess", prepare, work, self.config.preprocess)
         gate_reason = self._gate(prepared)  # before overlay masking: sharpness of the whole view
         prepared = timer.run("preprocess", self._overlay, work, prepared)
+        prepared = timer.run("preprocess", self._reflexes, work, prepared)
         if gate_reason is not None:
             return Extracted(record, image, prepared, skip=gate_reason, H_frame_to_work=S)
         self._turns.before_detect()

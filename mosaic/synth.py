@@ -64,7 +64,7 @@ _PSNR_MAX_FRAMES = 250  # frames kept in memory to measure the compression loss 
 # Independent random streams (children of SeedSequence(seed)): switching one group of
 # nuisances on or off never changes what the others draw, nor the trajectory.
 _GEOMETRY, _NUISANCE, _HARD_GEOMETRY, _HARD_NUISANCE = 0, 1, 2, 3
-_REAL_GEOMETRY, _REAL_NUISANCE = 4, 5
+_REAL_GEOMETRY, _REAL_NUISANCE, _REFLEX = 4, 5, 6
 _SOURCE_ORDER_SEED = 13  # fixed shuffle of a source folder (`pick_source`)
 
 
@@ -116,6 +116,8 @@ class SynthParams:
     glare_burst_prob: float = 0.0  # chance per frame that a 3-8 frame drifting glare starts
     interlaced: bool = False  # odd rows from half a frame interval later (an analogue camera's
     #   second field); the ground truth is the even rows' pose
+    lens_reflexes: int = 0  # bright, sharp-edged reflections of the fundus lens: they stay
+    #   near one place of the frame (a few px of wander) while the retina moves under them
 
     @classmethod
     def hard(cls, **overrides: Any) -> SynthParams:
@@ -176,6 +178,7 @@ class SynthParams:
             (self.perspective >= 0, f"perspective must be >= 0, got {self.perspective}"),
             (0 <= self.blur_prob <= 1, f"blur_prob must be in [0, 1], got {self.blur_prob}"),
             (self.noise_sigma >= 0, f"noise_sigma must be >= 0, got {self.noise_sigma}"),
+            (self.lens_reflexes >= 0, f"lens_reflexes must be >= 0, got {self.lens_reflexes}"),
             (self.fps > 0, f"fps must be > 0, got {self.fps}"),
             *(
                 (0 <= p <= 1, f"{name} must be in [0, 1], got {p}")
@@ -468,6 +471,43 @@ def _bursts(rng: np.random.Generator, n: int, prob: float) -> Iterator[tuple[int
 
 
 @dataclass(frozen=True)
+class _LensReflexes:
+    """Reflections of the fundus lens (own random stream): each an ellipse of 4-16 px semi-axes
+    with a flat top and a steep edge (a super-Gaussian, the lens surface's mirror image of the
+    lamp), 100-220 grey levels bright with a flicker of ±15 %, wandering smoothly by up to 6 px:
+    the lens moves a little, the retina much more."""
+
+    centres: np.ndarray  # (n, k, 2) frame px
+    axes: np.ndarray  # (k, 2) semi-axes, px
+    brightness: np.ndarray  # (n, k) grey levels
+
+    @classmethod
+    def draw(cls, params: SynthParams) -> _LensReflexes | None:
+        k, n, (w, h) = params.lens_reflexes, params.n_frames, params.size
+        if k <= 0:
+            return None
+        rng = _stream(params.seed, _REFLEX)
+        t = np.linspace(0.0, 1.0, n)
+        home = rng.uniform(0.25, 0.75, (k, 2)) * [w, h]
+        axes = rng.uniform(4.0, 16.0, (k, 2))
+        peak = rng.uniform(100.0, 220.0, k)
+        wander = 6.0 * np.array([[_smooth_signal(rng, t) for _ in range(2)] for _ in range(k)])
+        flicker = 1.0 + rng.uniform(-0.15, 0.15, (n, k))
+        return cls(home[None] + wander.transpose(2, 0, 1), axes, peak * flicker)
+
+    def image(self, i: int, w: int, h: int) -> np.ndarray:
+        """Grey levels the reflexes add to frame i, (h, w) float32."""
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        total = np.zeros((h, w), np.float32)
+        for (cx, cy), (ax, ay), peak in zip(
+            self.centres[i], self.axes, self.brightness[i], strict=True
+        ):
+            r2 = ((xx - cx) / ax) ** 2 + ((yy - cy) / ay) ** 2
+            total += np.float32(peak) * np.exp(-(r2**2))
+        return total
+
+
+@dataclass(frozen=True)
 class _RealisticNuisances:
     """Per-frame draws of the realistic profile's nuisances (independent stream)."""
 
@@ -524,6 +564,7 @@ def render_frames(
     aperture = _aperture_mask(w, h)[..., None] if params.aperture else None
     hard_rng = _stream(params.seed, _HARD_NUISANCE)
     real = _RealisticNuisances.draw(params, H_all)
+    reflexes = _LensReflexes.draw(params)
     burst_left = 0
     if params.nuisances:
         gain = 1.0 + params.gain_drift * _smooth_signal(rng, t)
@@ -592,6 +633,8 @@ def render_frames(
             if real.glare[i] is not None:
                 *blob, amplitude = real.glare[i]
                 img = img + amplitude * _glare_blob(w, h, *blob)[..., None]
+            if reflexes is not None:
+                img = img + reflexes.image(i, w, h)[..., None]
             if params.gamma_jitter > 0:
                 img = 255.0 * (np.clip(img, 0.0, 255.0) / 255.0) ** float(real.gamma[i])
             if real.noise_sigma[i] > 0:

@@ -7,6 +7,7 @@ from mosaic.config import PreprocessConfig
 from mosaic.preprocess import (
     Deinterlacer,
     OverlayMask,
+    ReflexMask,
     erode_by_disc,
     field_of_view_mask,
     field_offset,
@@ -335,3 +336,34 @@ def test_field_aligner_deinterlaces_when_on_and_tells_an_interlaced_video_when_o
         assert progressive(first) == (first, False)
     assert off.looks_interlaced and off.median_offset_px > 5
     assert not progressive.looks_interlaced and progressive.median_offset_px < 0.3
+
+
+def test_reflex_mask_removes_a_bright_spot_fixed_in_the_frame_not_one_on_the_retina():
+    """Over a moving retina: a bright spot that stays at one place of the frame (wandering
+    1 px, flickering) leaves the keypoint mask with a margin; an equally bright spot carried by
+    the retina, a bright vessel the view moves along (at the same pixels in every frame, but a
+    line), the rest of the view and a frame before the window is full stay in."""
+    config = PreprocessConfig(overlay_mask=False)
+    reflexes = ReflexMask(config)
+    rng = np.random.default_rng(1)
+    retina = cv2.GaussianBlur(rng.integers(60, 140, (240, 720), dtype=np.uint8), (0, 0), 3)
+    cv2.circle(retina, (250, 150), 9, 250, -1)  # a bright spot of the retina (an exudate)
+    cv2.line(retina, (100, 200), (330, 200), 250, 7)  # a bright vessel the view moves along
+    n = ReflexMask.WINDOW + ReflexMask.STEADY_FRAMES
+    for k in range(n):
+        frame = retina[:, 8 * k : 8 * k + 320].copy()  # the retina moves 8 px a frame
+        cv2.circle(frame, (200 + k % 2, 100), 8, int(230 + 10 * (k % 3)), -1)  # lens reflex
+        bgr = np.dstack([frame] * 3)
+        prepared = prepare(bgr, config)
+        masked = reflexes(bgr, prepared)
+        if k < n - 1:  # not yet seen long enough
+            np.testing.assert_array_equal(masked.mask, prepared.mask)
+    yy, xx = np.mgrid[0:240, 0:320]
+    distance = np.hypot(xx - 200.5, yy - 100)
+    assert (masked.mask[distance <= 8 + 4] == 0).all()  # the reflex and a margin
+    grown = 8 + 1 + config.overlay_margin_px + ReflexMask.REACH_PX
+    assert (masked.mask[distance > grown + 2] > 0).all()
+    spot = np.hypot(xx - (250 - 8 * (n - 1)), yy - 150) <= 12
+    assert (masked.mask[spot] > 0).all()  # in the view, and kept
+    off = ReflexMask(PreprocessConfig(overlay_mask=False, reflex_mask=False))
+    assert (off(bgr, prepared).mask == prepared.mask).all()

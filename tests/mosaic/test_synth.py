@@ -15,6 +15,7 @@ from mosaic.synth import (
     SynthParams,
     _bursts,
     _disc_kernel,
+    _LensReflexes,
     _line_kernel,
     corner_error,
     estimate_fov_disc,
@@ -475,3 +476,45 @@ def test_interlaced_frames_take_their_odd_rows_half_a_frame_later():
     np.testing.assert_array_equal(combed[0][0][1::2], halfway[1::2])
     assert np.abs(combed[0][0][1::2].astype(int) - plain[0][0][1::2]).mean() > 3
     np.testing.assert_array_equal(combed[-1][0], plain[-1][0])  # the last frame has no next
+
+
+def test_lens_reflexes_stay_near_one_place_of_the_frame_while_the_retina_moves(tmp_path):
+    """Reflexes are drawn from their own stream: the truth and every pixel away from them are
+    the video without them; near their place they are bright, and they wander a few px while
+    the retina under them moves tens of px."""
+    source = cv2.imread(str(sample_image_path()))
+    params = SynthParams.realistic(n_frames=12, size=(330, 175), seed=3, rim_overlap=0.0)
+    with_reflexes = SynthParams(**{**params.__dict__, "lens_reflexes": 2})
+    homes = _LensReflexes.draw(with_reflexes)
+    assert homes is not None and homes.centres.shape == (12, 2, 2)
+    yy, xx = np.mgrid[0:175, 0:330]
+    truth = []
+    for i, ((a, H_a), (b, H_b)) in enumerate(
+        zip(render_frames(source, params), render_frames(source, with_reflexes), strict=True)
+    ):
+        np.testing.assert_array_equal(H_a, H_b)
+        near = np.zeros((175, 330), bool)
+        for (cx, cy), (ax, ay) in zip(homes.centres[i], homes.axes, strict=True):
+            near |= ((xx - cx) / (2 * ax)) ** 2 + ((yy - cy) / (2 * ay)) ** 2 < 1
+            lit, unlit = int(b[round(cy), round(cx), 1]), a[round(cy), round(cx), 1]
+            assert lit - unlit >= 60 or lit >= 245, (lit, unlit)  # green: bright (or white)
+        diff = np.abs(a.astype(int) - b.astype(int)).max(axis=2)
+        assert diff[~near].max() <= 1
+        truth.append(H_a)
+    wander = np.linalg.norm(homes.centres - homes.centres[:1], axis=2).max()
+    centre = np.array([165.0, 87.5, 1.0])  # the retina under frame 0's centre, in the last frame
+    seen = np.linalg.inv(truth[-1]) @ truth[0] @ centre
+    moved = np.linalg.norm(seen[:2] / seen[2] - centre[:2])
+    assert wander <= 12.0 and moved > 3 * wander, (wander, moved)
+    from typer.testing import CliRunner
+
+    from mosaic.cli import app
+
+    out = tmp_path / "v.mp4"
+    args = ["synth", "--realistic", "--frames", "3", "--lens-reflexes", "2", "-o", str(out)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert json.loads(gt_path_for(out).read_text())["params"]["lens_reflexes"] == 2
+    args = ["synth", "--curved-pairs", "1", "--lens-reflexes", "1", "-o", str(tmp_path / "p")]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2 and "--lens-reflexes is for videos" in result.output

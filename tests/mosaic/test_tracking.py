@@ -412,3 +412,22 @@ def test_tracked_inliers_lower_the_error_of_a_realistic_video_without_perspectiv
     assert tracking["tracked_registrations"] >= 60
     assert tracking["perspective_relaxed"] < 0.3 * tracking["tracked_registrations"], tracking
     assert errors[31] < 0.85 * errors[0], errors
+
+
+def test_lens_reflexes_fixed_in_the_frame_do_not_hold_the_frames_back(fundus):
+    """Bright reflections of the fundus lens stay near one place of the frame while the retina
+    moves: points on their edges match where the camera was, and tracking windows that hold
+    them are pulled there too. With `[preprocess] reflex_mask` a realistic clip with three of
+    them is placed nearly as well as without them (measured: mean error 0.52 px against 0.43);
+    without the mask its error doubles (1.05 px)."""
+    base = SynthParams.realistic(n_frames=40, seed=5, perspective=0.0)
+    errors = {}
+    for reflexes, mask in ((0, True), (3, True), (3, False)):
+        params = SynthParams(**{**base.__dict__, "lens_reflexes": reflexes})
+        frames, truth = (list(x) for x in zip(*render_frames(fundus, params), strict=True))
+        config = with_overrides(Config(), preprocess={"reflex_mask": mask})
+        e = errors_to_first(_run(config, frames).report["frames"], truth, params.size)
+        assert np.isfinite(e).all(), (reflexes, mask)
+        errors[reflexes, mask] = e.mean()
+    assert errors[3, True] < 1.4 * errors[0, True], errors
+    assert errors[3, False] > 1.6 * errors[3, True], errors
