@@ -41,6 +41,7 @@ from mosaic.preprocess import (
     OverlayMask,
     Prepared,
     ReflexMask,
+    Spots,
     first_field,
     inverted_as,
     pair_polarities,
@@ -82,6 +83,7 @@ class FrameRecord:
     flagged: bool = False  # quality under [compose] quality_threshold: likely misregistered
     gain: float | None = None  # exposure gain the frame was composed with (None: none)
     deinterlaced: bool = False  # replaced by its first field (`[preprocess] deinterlace`)
+    reflexes: bool = False  # lens reflexes left out of it (`[preprocess] reflex_mask`)
     stage_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -335,6 +337,7 @@ class MosaicBuilder:
         self._gate = FrameGate(config.gating)
         self._overlay = OverlayMask(config.preprocess)
         self._reflexes = ReflexMask(config.preprocess)
+        self._reflex_spots: dict[int, Spots] = {}  # frame index -> its reflexes
         self._fields = Deinterlacer(config.preprocess.deinterlace)
         compose = config.compose
         self._photometry = VideoPhotometry(compose.side_bands, compose.flatfield)
@@ -418,6 +421,9 @@ class MosaicBuilder:
         gate_reason = self._gate(prepared)  # before overlay masking: sharpness of the whole view
         prepared = timer.run("preprocess", self._overlay, work, prepared)
         prepared = timer.run("preprocess", self._reflexes, work, prepared)
+        if self._reflexes.found is not None:  # kept for the re-render: left out there too
+            self._reflex_spots[index] = self._reflexes.found
+            record.reflexes = True
         if gate_reason is not None:
             return Extracted(record, image, prepared, skip=gate_reason, H_frame_to_work=S)
         self._turns.before_detect()
@@ -795,6 +801,9 @@ class MosaicBuilder:
                 # the overlay estimate of the whole video: no overlay pixels from any frame
                 work, _ = self._working_size(image)
                 prepared = self._overlay.apply(prepare(work, mask_config))
+                if index in self._reflex_spots:
+                    mask = self._reflex_spots[index].removed_from(prepared.mask)
+                    prepared = Prepared(prepared.gray, mask)
                 yield index, image, self._photometry.frame_mask(self._frame_mask(prepared, image))
 
         quality: dict[int, float] = {}  # of the refined poses, against the re-rendered mosaic
@@ -912,6 +921,7 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict
         "quality": None if np.isnan(record.quality) else round(record.quality, 3),
         "flagged": record.flagged,
         "deinterlaced": record.deinterlaced,
+        "reflexes": record.reflexes,
         "gain": None if record.gain is None else round(record.gain, 4),
         "time_ms": round(record.time_ms, 2),
     }
@@ -979,6 +989,7 @@ def build_report(
         "quality": round(float(np.median(scores)), 3) if scores else None,
         "quality_flagged": sum(r.flagged for r in records if r.status == REGISTERED),
         "deinterlaced": sum(r.deinterlaced for r in records),
+        "reflex_frames": sum(r.reflexes for r in records),
         "field_offset_px": None
         if builder._fields.median_offset_px is None
         else round(builder._fields.median_offset_px, 2),

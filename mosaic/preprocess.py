@@ -593,10 +593,10 @@ class ReflexMask:
     where that stays at least `reflex_brightness` in compact shapes (at most `MAX_FRACTION` of
     the view each, round or oval, where they were `STEADY_FRAMES` before), something bright
     has stayed there while the view moved; those shapes, grown by `overlay_margin_px` +
-    `REACH_PX`, leave the keypoint mask. Retinal bright spots (the optic disc, exudates) move
-    with the retina and drop out of the minimum; while the camera is still, everything stays,
-    which then costs nothing (the frames do not move). Frames in order; a frame of another size
-    starts afresh.
+    `REACH_PX`, leave the keypoint mask. Retinal bright spots (the optic
+    disc, exudates) move with the retina and drop out of the minimum; while the camera is
+    still, everything stays, which then costs nothing (the frames do not move). Frames in order;
+    a frame of another size starts afresh.
     """
 
     WINDOW = 12  # frames a reflex must stay bright in
@@ -619,6 +619,7 @@ class ReflexMask:
         self._config = config
         self._recent: deque[np.ndarray] = deque(maxlen=self.WINDOW)
         self._lasting: deque[np.ndarray] = deque(maxlen=self.STEADY_FRAMES + 1)
+        self.found: Spots | None = None  # the reflexes masked in the last frame
 
     @classmethod
     def _surroundings(cls, gray: np.ndarray) -> np.ndarray:
@@ -631,7 +632,9 @@ class ReflexMask:
         return cv2.resize(cv2.medianBlur(small, k), (w, h), interpolation=cv2.INTER_LINEAR)
 
     def __call__(self, image: np.ndarray, prepared: Prepared) -> Prepared:
-        """Take `image` (BGR or grey) into the history; `prepared` without the reflexes."""
+        """Take `image` (BGR or grey) into the history; `prepared` without the reflexes (also
+        left in `found`)."""
+        self.found = None
         if not self._config.reflex_mask:
             return prepared
         gray = to_gray(image, self._config.green_channel)
@@ -661,13 +664,35 @@ class ReflexMask:
         spot[0] = False  # background label
         if not spot.any():
             return prepared
-        reflex = spot[labels].view(np.uint8)
         r = self._config.overlay_margin_px + self.REACH_PX
-        if r > 0:
-            reflex = cv2.dilate(
-                reflex, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)
-            )
-        return Prepared(prepared.gray, np.where(reflex > 0, np.uint8(0), prepared.mask))
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        self.found = Spots.of(cv2.dilate(spot[labels].view(np.uint8), disc))
+        return Prepared(prepared.gray, self.found.removed_from(prepared.mask))
+
+
+@dataclass(frozen=True)
+class Spots:
+    """Pixels of one frame to leave out (its lens reflexes), kept small for the re-render: the
+    corner of their bounding box and the box's bits."""
+
+    x: int
+    y: int
+    size: tuple[int, int]  # (height, width) of the box
+    bits: np.ndarray  # np.packbits of the box, row-major
+
+    @classmethod
+    def of(cls, mask: np.ndarray) -> Spots:
+        """The nonzero pixels of `mask` (one nonzero at least)."""
+        x, y, w, h = cv2.boundingRect(mask)
+        return cls(x, y, (h, w), np.packbits(mask[y : y + h, x : x + w] > 0))
+
+    def removed_from(self, mask: np.ndarray) -> np.ndarray:
+        """`mask` with these pixels set to 0."""
+        (h, w), x, y = self.size, self.x, self.y
+        box = np.unpackbits(self.bits, count=h * w).reshape(h, w).astype(bool)
+        out = mask.copy()
+        out[y : y + h, x : x + w][box] = 0
+        return out
 
 
 class FrameGate:

@@ -426,8 +426,13 @@ def test_lens_reflexes_fixed_in_the_frame_do_not_hold_the_frames_back(fundus):
         params = SynthParams(**{**base.__dict__, "lens_reflexes": reflexes})
         frames, truth = (list(x) for x in zip(*render_frames(fundus, params), strict=True))
         config = with_overrides(Config(), preprocess={"reflex_mask": mask})
-        e = errors_to_first(_run(config, frames).report["frames"], truth, params.size)
+        report = _run(config, frames).report
+        e = errors_to_first(report["frames"], truth, params.size)
         assert np.isfinite(e).all(), (reflexes, mask)
         errors[reflexes, mask] = e.mean()
+        # masked from the 15th frame on (12 to be seen in, 3 more to be steady), and reported
+        masked = report["summary"]["reflex_frames"]
+        assert masked == (26 if reflexes and mask else 0), (reflexes, mask, masked)
+        assert masked == sum(f["reflexes"] for f in report["frames"])
     assert errors[3, True] < 1.4 * errors[0, True], errors
     assert errors[3, False] > 1.6 * errors[3, True], errors
