@@ -452,6 +452,14 @@ def synth(
             "(a few px of wander) while the retina moves under them.",
         ),
     ] = 0,
+    dust_spots: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            help="N out-of-focus dust spots on the sensor or lens: soft dark blobs fixed in the "
+            "frame (20-60 % of the light taken at their centre).",
+        ),
+    ] = 0,
     curved_pairs: Annotated[
         int,
         typer.Option(
@@ -479,9 +487,11 @@ def synth(
     with _user_errors():
         if hard and realistic:
             raise InputError("choose one of --hard and --realistic")
-        if curved_pairs and (interlaced or lens_reflexes):
-            given = "--interlaced" if interlaced else "--lens-reflexes"
-            raise InputError(f"{given} is for videos, not --curved-pairs")
+        video_only = {"--interlaced": interlaced, "--lens-reflexes": lens_reflexes,
+                      "--dust-spots": dust_spots}  # fmt: skip
+        given = [name for name, value in video_only.items() if value]
+        if curved_pairs and given:
+            raise InputError(f"{' and '.join(given)}: for videos, not --curved-pairs")
         if curved_pairs:
             _curved_pairs(
                 image or sample_image_path(), output, curved_pairs, seed, size, realistic, turn_deg
@@ -495,6 +505,7 @@ def synth(
             nuisances=not clean,
             interlaced=interlaced,
             lens_reflexes=lens_reflexes,
+            dust_spots=dust_spots,
         )
         source = pick_source(image or sample_image_path(), seed)
         gt = write_synthetic_video(source, output, params)

@@ -64,7 +64,7 @@ _PSNR_MAX_FRAMES = 250  # frames kept in memory to measure the compression loss 
 # Independent random streams (children of SeedSequence(seed)): switching one group of
 # nuisances on or off never changes what the others draw, nor the trajectory.
 _GEOMETRY, _NUISANCE, _HARD_GEOMETRY, _HARD_NUISANCE = 0, 1, 2, 3
-_REAL_GEOMETRY, _REAL_NUISANCE, _REFLEX = 4, 5, 6
+_REAL_GEOMETRY, _REAL_NUISANCE, _REFLEX, _DUST = 4, 5, 6, 7
 _SOURCE_ORDER_SEED = 13  # fixed shuffle of a source folder (`pick_source`)
 
 
@@ -118,6 +118,8 @@ class SynthParams:
     #   second field); the ground truth is the even rows' pose
     lens_reflexes: int = 0  # bright, sharp-edged reflections of the fundus lens: they stay
     #   near one place of the frame (a few px of wander) while the retina moves under them
+    dust_spots: int = 0  # out-of-focus dust on the sensor or lens: soft dark blobs fixed in the
+    #   frame, which darken the light by 20-60 %
 
     @classmethod
     def hard(cls, **overrides: Any) -> SynthParams:
@@ -179,6 +181,7 @@ class SynthParams:
             (0 <= self.blur_prob <= 1, f"blur_prob must be in [0, 1], got {self.blur_prob}"),
             (self.noise_sigma >= 0, f"noise_sigma must be >= 0, got {self.noise_sigma}"),
             (self.lens_reflexes >= 0, f"lens_reflexes must be >= 0, got {self.lens_reflexes}"),
+            (self.dust_spots >= 0, f"dust_spots must be >= 0, got {self.dust_spots}"),
             (self.fps > 0, f"fps must be > 0, got {self.fps}"),
             *(
                 (0 <= p <= 1, f"{name} must be in [0, 1], got {p}")
@@ -507,6 +510,22 @@ class _LensReflexes:
         return total
 
 
+def _dust(params: SynthParams) -> np.ndarray | None:
+    """(h, w, 1) share of the light that passes the dust (own random stream), or None: each
+    spot a Gaussian of 4-14 px sd that takes 20-60 % of the light at its centre."""
+    if params.dust_spots <= 0:
+        return None
+    (w, h), k = params.size, params.dust_spots
+    rng = _stream(params.seed, _DUST)
+    centres = rng.uniform(0.15, 0.85, (k, 2)) * [w, h]
+    sd, depth = rng.uniform(4.0, 14.0, k), rng.uniform(0.2, 0.6, k)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    passed = np.ones((h, w), np.float32)
+    for (cx, cy), s, d in zip(centres, sd, depth, strict=True):
+        passed *= 1.0 - d * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * s * s))
+    return passed[..., None]
+
+
 @dataclass(frozen=True)
 class _RealisticNuisances:
     """Per-frame draws of the realistic profile's nuisances (independent stream)."""
@@ -565,6 +584,7 @@ def render_frames(
     hard_rng = _stream(params.seed, _HARD_NUISANCE)
     real = _RealisticNuisances.draw(params, H_all)
     reflexes = _LensReflexes.draw(params)
+    dust = _dust(params)
     burst_left = 0
     if params.nuisances:
         gain = 1.0 + params.gain_drift * _smooth_signal(rng, t)
@@ -617,6 +637,8 @@ def render_frames(
             r2 = ((xx - vig_centre[i, 0]) ** 2 + (yy - vig_centre[i, 1]) ** 2) * r2_scale
             light = gain[i] * real.gain[i] * (1.0 - vignette[i] * r2)
             img *= light[..., None] * tint[i].astype(np.float32)
+        if dust is not None:
+            img *= dust
         if aperture is not None:
             img = img * aperture + _APERTURE_LEVEL * (1.0 - aperture)
         if params.nuisances:

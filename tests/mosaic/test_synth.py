@@ -511,10 +511,32 @@ def test_lens_reflexes_stay_near_one_place_of_the_frame_while_the_retina_moves(t
     from mosaic.cli import app
 
     out = tmp_path / "v.mp4"
-    args = ["synth", "--realistic", "--frames", "3", "--lens-reflexes", "2", "-o", str(out)]
-    result = CliRunner().invoke(app, args)
+    args = ["synth", "--realistic", "--frames", "3", "--lens-reflexes", "2", "--dust-spots", "1"]
+    result = CliRunner().invoke(app, [*args, "-o", str(out)])
     assert result.exit_code == 0, result.output
-    assert json.loads(gt_path_for(out).read_text())["params"]["lens_reflexes"] == 2
+    written = json.loads(gt_path_for(out).read_text())["params"]
+    assert written["lens_reflexes"] == 2 and written["dust_spots"] == 1
     args = ["synth", "--curved-pairs", "1", "--lens-reflexes", "1", "-o", str(tmp_path / "p")]
     result = CliRunner().invoke(app, args)
-    assert result.exit_code == 2 and "--lens-reflexes is for videos" in result.output
+    assert result.exit_code == 2 and "--lens-reflexes: for videos" in result.output
+
+
+def test_dust_spots_darken_fixed_places_of_the_frame_by_a_share_of_the_light():
+    """Dust (own stream) darkens the same places of every frame by a share of the light, up to
+    60 % at a spot's centre; elsewhere, and the truth, are the video without it."""
+    source = cv2.imread(str(sample_image_path()))
+    params = SynthParams.realistic(n_frames=4, size=(330, 175), seed=3, noise_sigma=0.0,
+                                   noise_jitter=0.0, rim_overlap=0.0)  # fmt: skip
+    dusty = SynthParams(**{**params.__dict__, "dust_spots": 2})
+    darker, lit = [], []
+    for (a, H_a), (b, H_b) in zip(
+        render_frames(source, params), render_frames(source, dusty), strict=True
+    ):
+        np.testing.assert_array_equal(H_a, H_b)
+        ratio = (b[..., 1].astype(float) + 1) / (a[..., 1].astype(float) + 1)
+        assert ratio.min() > 0.3 and ratio.max() < 1.05
+        darker.append(ratio < 0.85)
+        lit.append(a[..., 1] > 40)  # where the ratio is more than rounding
+    where = np.logical_and.reduce(lit)
+    assert all((d[where] == darker[0][where]).mean() > 0.995 for d in darker)  # fixed
+    assert 50 < darker[0].sum() < 0.05 * darker[0].size  # two spots, not the frame
