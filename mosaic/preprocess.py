@@ -9,6 +9,7 @@ would otherwise pull every frame to the same place.
 from __future__ import annotations
 
 import logging
+import zlib
 from collections import deque
 from dataclasses import dataclass
 from functools import lru_cache
@@ -582,6 +583,18 @@ def _elongation(labels: np.ndarray, n: int) -> np.ndarray:
     return np.sqrt(long / np.maximum(short, 1e-12))
 
 
+def _grown(shapes: np.ndarray, r: int) -> np.ndarray:
+    """The bool image `shapes` dilated by a disc of radius `r`, as uint8 (dilating only the box
+    around them: a fraction of a full frame's cost)."""
+    x, y, w, h = cv2.boundingRect(shapes.view(np.uint8))
+    x0, y0 = max(x - r, 0), max(y - r, 0)
+    x1, y1 = min(x + w + r, shapes.shape[1]), min(y + h + r, shapes.shape[0])
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    out = np.zeros(shapes.shape, np.uint8)
+    out[y0:y1, x0:x1] = cv2.dilate(shapes[y0:y1, x0:x1].view(np.uint8), disc)
+    return out
+
+
 class ReflexMask:
     """Finds lens reflexes (bright spots fixed to the camera) in the recent frames and masks them.
 
@@ -593,10 +606,10 @@ class ReflexMask:
     where that stays at least `reflex_brightness` in compact shapes (at most `MAX_FRACTION` of
     the view each, round or oval, where they were `STEADY_FRAMES` before), something bright
     has stayed there while the view moved; those shapes, grown by `overlay_margin_px` +
-    `REACH_PX`, leave the keypoint mask. Retinal bright spots (the optic
-    disc, exudates) move with the retina and drop out of the minimum; while the camera is
-    still, everything stays, which then costs nothing (the frames do not move). Frames in order;
-    a frame of another size starts afresh.
+    `REACH_PX`, leave the keypoint mask. Retinal bright spots (the optic disc, exudates) move
+    with the retina and drop out of the minimum; while the camera is still, everything stays,
+    which then costs nothing (the frames do not move). Frames in order; a frame of another size
+    starts afresh.
     """
 
     WINDOW = 12  # frames a reflex must stay bright in
@@ -620,14 +633,19 @@ class ReflexMask:
         self._recent: deque[np.ndarray] = deque(maxlen=self.WINDOW)
         self._lasting: deque[np.ndarray] = deque(maxlen=self.STEADY_FRAMES + 1)
         self.found: Spots | None = None  # the reflexes masked in the last frame
+        self._kept: Spots | None = None  # the last reflexes found
 
     @classmethod
-    def _surroundings(cls, gray: np.ndarray) -> np.ndarray:
+    def _surroundings(cls, gray: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """The grey level around each pixel: a median over ~`SURROUNDINGS_PX` (at a quarter of
         the size), which a spot smaller than half of it does not raise, and which follows
-        vignetting and illumination."""
+        vignetting and illumination. Outside the view `mask` stands the view's median: the
+        dark border must not make the retina next to it look bright."""
         h, w = gray.shape
-        small = cv2.resize(gray, (max(w // 4, 1), max(h // 4, 1)), interpolation=cv2.INTER_AREA)
+        inside = mask > 0
+        filled = np.where(inside, gray, np.uint8(np.median(gray[inside])))
+        size = (max(w // 4, 1), max(h // 4, 1))
+        small = cv2.resize(filled, size, interpolation=cv2.INTER_AREA)
         k = cls.SURROUNDINGS_PX // 4 | 1
         return cv2.resize(cv2.medianBlur(small, k), (w, h), interpolation=cv2.INTER_LINEAR)
 
@@ -644,10 +662,7 @@ class ReflexMask:
         inside = prepared.mask > 0
         if not inside.any():
             return prepared
-        # outside the view stands its median: the dark border must not make the retina next
-        # to it look bright
-        filled = np.where(inside, gray, np.uint8(np.median(gray[inside])))
-        self._recent.append(cv2.subtract(gray, self._surroundings(filled)))
+        self._recent.append(cv2.subtract(gray, self._surroundings(gray, prepared.mask)))
         if len(self._recent) < self.WINDOW:
             return prepared
         lasting = np.minimum.reduce(self._recent) >= self._config.reflex_brightness
@@ -664,32 +679,36 @@ class ReflexMask:
         spot[0] = False  # background label
         if not spot.any():
             return prepared
-        r = self._config.overlay_margin_px + self.REACH_PX
-        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        self.found = Spots.of(cv2.dilate(spot[labels].view(np.uint8), disc))
-        return Prepared(prepared.gray, self.found.removed_from(prepared.mask))
+        found = Spots.of(_grown(spot[labels], self._config.overlay_margin_px + self.REACH_PX))
+        # the same as the last frame's (common: a reflex holds still): one object for both, so
+        # a long video keeps one copy per change, not per frame
+        self.found = self._kept = self._kept if found == self._kept else found
+        return Prepared(prepared.gray, found.removed_from(prepared.mask))
 
 
 @dataclass(frozen=True)
 class Spots:
     """Pixels of one frame to leave out (its lens reflexes), kept small for the re-render: the
-    corner of their bounding box and the box's bits."""
+    corner of their bounding box and the box's bits, compressed (mostly zeros: a few hundred
+    bytes a frame)."""
 
     x: int
     y: int
     size: tuple[int, int]  # (height, width) of the box
-    bits: np.ndarray  # np.packbits of the box, row-major
+    bits: bytes  # zlib of np.packbits of the box, row-major
 
     @classmethod
     def of(cls, mask: np.ndarray) -> Spots:
         """The nonzero pixels of `mask` (one nonzero at least)."""
         x, y, w, h = cv2.boundingRect(mask)
-        return cls(x, y, (h, w), np.packbits(mask[y : y + h, x : x + w] > 0))
+        packed = np.packbits(mask[y : y + h, x : x + w] > 0).tobytes()
+        return cls(x, y, (h, w), zlib.compress(packed, 1))
 
     def removed_from(self, mask: np.ndarray) -> np.ndarray:
         """`mask` with these pixels set to 0."""
         (h, w), x, y = self.size, self.x, self.y
-        box = np.unpackbits(self.bits, count=h * w).reshape(h, w).astype(bool)
+        packed = np.frombuffer(zlib.decompress(self.bits), np.uint8)
+        box = np.unpackbits(packed, count=h * w).reshape(h, w).astype(bool)
         out = mask.copy()
         out[y : y + h, x : x + w][box] = 0
         return out

@@ -365,5 +365,8 @@ def test_reflex_mask_removes_a_bright_spot_fixed_in_the_frame_not_one_on_the_ret
     assert (masked.mask[distance > grown + 2] > 0).all()
     spot = np.hypot(xx - (250 - 8 * (n - 1)), yy - 150) <= 12
     assert (masked.mask[spot] > 0).all()  # in the view, and kept
+    # what the re-render gets back: the same pixels, from a few hundred bytes
+    assert reflexes.found is not None and len(reflexes.found.bits) < 1000
+    np.testing.assert_array_equal(reflexes.found.removed_from(prepared.mask), masked.mask)
     off = ReflexMask(PreprocessConfig(overlay_mask=False, reflex_mask=False))
     assert (off(bgr, prepared).mask == prepared.mask).all()
