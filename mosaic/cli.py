@@ -179,6 +179,8 @@ def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> N
         rows.insert(4, ("deinterlaced", summary["deinterlaced"]))
     elif summary.get("looks_interlaced"):
         rows.insert(4, ("looks interlaced", "yes (see [preprocess] deinterlace)"))
+    if summary.get("reflex_frames"):  # lens reflexes left out of those frames
+        rows.insert(4, ("lens reflexes masked", f"{summary['reflex_frames']} frames"))
     width = max(len(name) for name, _ in rows)
     typer.echo("\n".join(f"{name:<{width}}  {value}" for name, value in rows))
     typer.echo(f"mosaic: {output}")

@@ -407,3 +407,18 @@ def test_an_interlaced_video_is_told_and_deinterlaced_on_request(tmp_path):
     assert re.search(r"deinterlaced\s+12", result.stdout)
     result = runner.invoke(app, [*args, "--interlaced", "--curved-pairs", "2"])
     assert result.exit_code == 2 and "not --curved-pairs" in result.output
+
+
+def test_build_says_in_how_many_frames_lens_reflexes_were_masked(tmp_path):
+    """A video with lens reflexes: the summary names the frames they were left out of (from
+    the 15th on: 12 frames to be seen in, 3 more to hold still), as the report counts them."""
+    clip = tmp_path / "reflexes.mp4"
+    args = ["synth", str(SAMPLE_IMAGE), "-o", str(clip), "--frames", "20", "--realistic"]
+    result = runner.invoke(app, [*args, "--lens-reflexes", "2", "--seed", "4"])
+    assert result.exit_code == 0, result.output
+    out = tmp_path / "m.png"
+    result = runner.invoke(app, ["build", str(clip), "-o", str(out), "--detector", "sift"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(out.with_suffix(".json").read_text())["summary"]
+    assert summary["reflex_frames"] == 6, summary["reflex_frames"]
+    assert "lens reflexes masked    6 frames" in result.stdout
