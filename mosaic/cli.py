@@ -462,6 +462,13 @@ def synth(
             "frame (20-60 % of the light taken at their centre).",
         ),
     ] = 0,
+    lens_rim: Annotated[
+        bool,
+        typer.Option(
+            help="As through a handheld fundus lens: the retina only inside the lens's rim, a "
+            "disc that moves about the frame, the face out of focus around it.",
+        ),
+    ] = False,
     curved_pairs: Annotated[
         int,
         typer.Option(
@@ -490,7 +497,7 @@ def synth(
         if hard and realistic:
             raise InputError("choose one of --hard and --realistic")
         video_only = {"--interlaced": interlaced, "--lens-reflexes": lens_reflexes,
-                      "--dust-spots": dust_spots}  # fmt: skip
+                      "--dust-spots": dust_spots, "--lens-rim": lens_rim}  # fmt: skip
         given = [name for name, value in video_only.items() if value]
         if curved_pairs and given:
             raise InputError(f"{' and '.join(given)}: for videos, not --curved-pairs")
@@ -508,6 +515,7 @@ def synth(
             interlaced=interlaced,
             lens_reflexes=lens_reflexes,
             dust_spots=dust_spots,
+            lens_rim=lens_rim,
         )
         source = pick_source(image or sample_image_path(), seed)
         gt = write_synthetic_video(source, output, params)

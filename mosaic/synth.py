@@ -64,7 +64,7 @@ _PSNR_MAX_FRAMES = 250  # frames kept in memory to measure the compression loss 
 # Independent random streams (children of SeedSequence(seed)): switching one group of
 # nuisances on or off never changes what the others draw, nor the trajectory.
 _GEOMETRY, _NUISANCE, _HARD_GEOMETRY, _HARD_NUISANCE = 0, 1, 2, 3
-_REAL_GEOMETRY, _REAL_NUISANCE, _REFLEX, _DUST = 4, 5, 6, 7
+_REAL_GEOMETRY, _REAL_NUISANCE, _REFLEX, _DUST, _RIM = 4, 5, 6, 7, 8
 _SOURCE_ORDER_SEED = 13  # fixed shuffle of a source folder (`pick_source`)
 
 
@@ -120,6 +120,8 @@ class SynthParams:
     #   near one place of the frame (a few px of wander) while the retina moves under them
     dust_spots: int = 0  # out-of-focus dust on the sensor or lens: soft dark blobs fixed in the
     #   frame, which darken the light by 20-60 %
+    lens_rim: bool = False  # a handheld fundus lens: the retina is seen only inside its rim, a
+    #   disc that moves about the frame; outside, the face and lid, out of focus and lit
 
     @classmethod
     def hard(cls, **overrides: Any) -> SynthParams:
@@ -527,6 +529,49 @@ def _dust(params: SynthParams) -> np.ndarray | None:
 
 
 @dataclass(frozen=True)
+class _LensRim:
+    """A handheld lens's rim (own random stream): the retina shows inside a disc of 0.45-0.6 of
+    the frame's height in radius whose centre wanders smoothly over ±15 % of the frame; outside
+    it the face and lid, out of focus (a smooth random field of 60-160 grey levels) that drifts
+    a little."""
+
+    centres: np.ndarray  # (n, 2) frame px
+    radius: float
+    surround: np.ndarray  # (h + 2 * pad, w + 2 * pad, 3) float32
+    drift: np.ndarray  # (n, 2) px the surround has moved
+    PAD = 16
+
+    @classmethod
+    def draw(cls, params: SynthParams) -> _LensRim | None:
+        if not params.lens_rim:
+            return None
+        n, (w, h) = params.n_frames, params.size
+        rng = _stream(params.seed, _RIM)
+        t = np.linspace(0.0, 1.0, n)
+        wander = np.stack([_smooth_signal(rng, t) * 0.15 * w, _smooth_signal(rng, t) * 0.15 * h], 1)
+        centres = np.array([(w - 1) / 2, (h - 1) / 2]) + wander
+        radius = float(rng.uniform(0.45, 0.6) * h)
+        p = cls.PAD
+        field = rng.uniform(0.0, 1.0, (h + 2 * p, w + 2 * p)).astype(np.float32)
+        field = cv2.GaussianBlur(field, (0, 0), 25.0)
+        field = (field - field.min()) / max(float(np.ptp(field)), 1e-6)
+        skin = np.array([0.55, 0.7, 1.0], np.float32)  # B, G, R: a lit face is reddish
+        surround = (60.0 + 100.0 * field)[..., None] * skin
+        drift = np.stack([_smooth_signal(rng, t) * 0.5 * p, _smooth_signal(rng, t) * 0.5 * p], 1)
+        return cls(centres, radius, surround, drift)
+
+    def apply(self, img: np.ndarray, i: int) -> np.ndarray:
+        """Frame i's retina inside the rim, the surround outside (a soft 4 px edge)."""
+        h, w = img.shape[:2]
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        (cx, cy), (dx, dy), p = self.centres[i], self.drift[i], self.PAD
+        rho = np.hypot(xx - cx, yy - cy)
+        inside = np.clip((self.radius - rho) / 4.0 + 0.5, 0.0, 1.0)[..., None]
+        x0, y0 = round(p + dx), round(p + dy)
+        return img * inside + self.surround[y0 : y0 + h, x0 : x0 + w] * (1.0 - inside)
+
+
+@dataclass(frozen=True)
 class _RealisticNuisances:
     """Per-frame draws of the realistic profile's nuisances (independent stream)."""
 
@@ -585,6 +630,7 @@ def render_frames(
     real = _RealisticNuisances.draw(params, H_all)
     reflexes = _LensReflexes.draw(params)
     dust = _dust(params)
+    rim = _LensRim.draw(params)
     burst_left = 0
     if params.nuisances:
         gain = 1.0 + params.gain_drift * _smooth_signal(rng, t)
@@ -637,6 +683,8 @@ def render_frames(
             r2 = ((xx - vig_centre[i, 0]) ** 2 + (yy - vig_centre[i, 1]) ** 2) * r2_scale
             light = gain[i] * real.gain[i] * (1.0 - vignette[i] * r2)
             img *= light[..., None] * tint[i].astype(np.float32)
+        if rim is not None:
+            img = rim.apply(img, i)
         if dust is not None:
             img *= dust
         if aperture is not None:

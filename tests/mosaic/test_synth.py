@@ -16,6 +16,7 @@ from mosaic.synth import (
     _bursts,
     _disc_kernel,
     _LensReflexes,
+    _LensRim,
     _line_kernel,
     corner_error,
     estimate_fov_disc,
@@ -512,10 +513,10 @@ def test_lens_reflexes_stay_near_one_place_of_the_frame_while_the_retina_moves(t
 
     out = tmp_path / "v.mp4"
     args = ["synth", "--realistic", "--frames", "3", "--lens-reflexes", "2", "--dust-spots", "1"]
-    result = CliRunner().invoke(app, [*args, "-o", str(out)])
+    result = CliRunner().invoke(app, [*args, "--lens-rim", "-o", str(out)])
     assert result.exit_code == 0, result.output
     written = json.loads(gt_path_for(out).read_text())["params"]
-    assert written["lens_reflexes"] == 2 and written["dust_spots"] == 1
+    assert written["lens_reflexes"] == 2 and written["dust_spots"] == 1 and written["lens_rim"]
     args = ["synth", "--curved-pairs", "1", "--lens-reflexes", "1", "-o", str(tmp_path / "p")]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 2 and "--lens-reflexes: for videos" in result.output
@@ -540,3 +541,27 @@ def test_dust_spots_darken_fixed_places_of_the_frame_by_a_share_of_the_light():
     where = np.logical_and.reduce(lit)
     assert all((d[where] == darker[0][where]).mean() > 0.995 for d in darker)  # fixed
     assert 50 < darker[0].sum() < 0.05 * darker[0].size  # two spots, not the frame
+
+
+def test_a_lens_rim_shows_the_retina_inside_a_moving_disc_and_the_face_outside():
+    """Through a handheld lens the retina shows inside its rim (the frame as without it, the
+    truth unchanged); outside, the face, brighter and without the retina's red; the rim moves
+    about the frame over the video."""
+    source = cv2.imread(str(sample_image_path()))
+    params = SynthParams.realistic(n_frames=30, size=(330, 175), seed=2, rim_overlap=0.0)
+    through = SynthParams(**{**params.__dict__, "lens_rim": True})
+    rim = _LensRim.draw(through)
+    assert rim is not None and _LensRim.draw(params) is None
+    yy, xx = np.mgrid[0:175, 0:330]
+    for i, ((a, H_a), (b, H_b)) in enumerate(
+        zip(render_frames(source, params), render_frames(source, through), strict=True)
+    ):
+        np.testing.assert_array_equal(H_a, H_b)
+        rho = np.hypot(xx - rim.centres[i, 0], yy - rim.centres[i, 1])
+        # (blur bursts spread the rim over up to ~20 px)
+        inside, outside = rho < rim.radius - 25, (rho > rim.radius + 25) & (a[..., 1] > 20)
+        assert np.abs(a[inside].astype(int) - b[inside]).max() <= 1
+        if outside.sum() > 500:  # the face: no longer the retina
+            assert np.abs(a[outside].astype(int) - b[outside]).mean() > 15
+    travel = np.linalg.norm(rim.centres.max(axis=0) - rim.centres.min(axis=0))
+    assert travel > 20, travel
