@@ -160,6 +160,12 @@ def _segments_row(report: dict[str, Any]) -> str:
     return f"{len(segments)} ({sizes} frames; main mosaic: segment {report.get('main_segment')})"
 
 
+def _detector_row(summary: dict[str, Any]) -> str:
+    """The detector, with the precision its network ran in where it has one."""
+    precision = summary.get("precision")
+    return f"{summary['detector']} ({precision})" if precision else str(summary["detector"])
+
+
 def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> None:
     summary = report["summary"]
     rows = [
@@ -173,7 +179,7 @@ def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> N
         ("mean matches / inliers", f"{summary['mean_matches']} / {summary['mean_inliers']}"),
         ("quality / flagged", f"{summary.get('quality')} / {summary.get('quality_flagged', 0)}"),
         ("frames per second", summary["fps"]),
-        ("detector", summary["detector"]),
+        ("detector", _detector_row(summary)),
     ]
     if summary.get("deinterlaced"):  # an interlaced camera: how many frames were combed
         rows.insert(4, ("deinterlaced", summary["deinterlaced"]))

@@ -199,6 +199,11 @@ class GlamPointsDetector:
         )
 
     @property
+    def precision(self) -> str:
+        """The precision the network runs in (float32 | bfloat16): "auto" resolved."""
+        return str(self._model.precision)
+
+    @property
     def takes_every_core(self) -> bool:
         """The network runs on torch's CPU threads, more than one: registering meanwhile
         would compete with it for the cores (`pipeline.Turns`)."""

@@ -998,6 +998,8 @@ def build_report(
         "fps": round(len(records) / elapsed, 2) if elapsed > 0 else 0.0,
         "mean_stage_ms": stage_ms,
         "detector": builder.extractor.detector.name,
+        # GLAMpoints' network precision ("auto" resolved: figures differ between the two)
+        "precision": getattr(builder.extractor.detector, "precision", None),
         "working_scale": 1.0 if builder._S is None else round(float(builder._S[0, 0]), 4),
         "retina_diameter_px": None
         if builder._retina_diameter_px is None

@@ -775,3 +775,18 @@ def test_an_interlaced_video_is_registered_on_its_first_fields(video, tmp_path):
     assert np.mean(errors_on) < 1.5 * np.mean(errors_progressive) + 0.3
     summary = progressive.report["summary"]
     assert not summary["looks_interlaced"] and summary["field_offset_px"] < 0.5
+
+
+def test_the_report_says_which_precision_the_network_ran_in(tmp_path):
+    """Figures differ between float32 and bfloat16 (single videos by 0.3), and "auto" depends
+    on the CPU: the report names the precision that ran, and none for detectors without a
+    network."""
+    folder, _ = _frames_folder(tmp_path, 3)
+    for detector, precision, expected in (
+        ("glampoints", "float32", "float32"),
+        ("glampoints", "bfloat16", "bfloat16"),
+        ("sift", "auto", None),
+    ):
+        config = with_overrides(Config(), features={"detector": detector, "precision": precision})
+        summary = _run(folder, config).report["summary"]
+        assert summary["precision"] == expected and summary["registered"] == 3, summary
