@@ -906,6 +906,7 @@ class VideoResult:
     # mosaic segments (several: the camera left the mapped area; `registered` counts them all,
     # `accurate` and the errors are of the first placed frame's segment)
     segments: int = 1
+    precision: str | None = None  # GLAMpoints' network as it ran (None: no network, older run)
     errors: list[tuple[int, float]] = field(default_factory=list, repr=False)  # (index, px)
     step_errors: list[tuple[int, float]] = field(default_factory=list, repr=False)
 
@@ -1274,6 +1275,7 @@ def evaluate_video(
         **scores,
         model_counts=_model_counts(frames),
         segments=summary["segments"],
+        precision=summary.get("precision"),
         errors=sorted(errors.items()) if errors else [],
         step_errors=sorted(steps.items()),
     )
@@ -1394,6 +1396,13 @@ def compare_methods(
         keys = [(method, key_now[r.video]) for r in runs]
         pairs = [(r, before[k]) for r, k in zip(runs, keys, strict=True) if k in before]
         rows.append(_paired(pairs, method, f"{method} (previous run)", rng, samples))
+        mixed = {(a.precision, b.precision) for a, b in pairs if a.precision != b.precision}
+        for now, then in sorted(mixed, key=str):
+            log.warning(
+                "%s ran in %s here and in %s in the earlier run: the differences include the "
+                "precision's (single videos swing by tenths between the two)",
+                method, now or "an unrecorded precision", then or "an unrecorded precision",
+            )  # fmt: skip
     return rows
 
 
@@ -1413,8 +1422,11 @@ def load_video_results(path: Path) -> list[VideoResult]:
     try:
         videos = json.loads(file.read_text())["videos"]
         fields = {f.name for f in dataclasses.fields(VideoResult)}
-        # JSON wrote nan as null
-        entries = [{k: math.nan if v is None else v for k, v in e.items()} for e in videos]
+        # JSON wrote nan as null (precision's null is None)
+        entries = [
+            {k: math.nan if v is None and k != "precision" else v for k, v in e.items()}
+            for e in videos
+        ]
         return [VideoResult(**{k: v for k, v in e.items() if k in fields}) for e in entries]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InputError(f"not the output of `mosaic evaluate` on videos: {path} ({exc})") from exc

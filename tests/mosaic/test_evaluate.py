@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import logging
 import math
 import shutil
 
@@ -661,3 +662,18 @@ def test_a_video_that_leaves_the_mapped_area_counts_every_segment_as_registered(
     assert result.registered_fraction == pytest.approx(26 / 28)
     assert result.accurate_fraction == pytest.approx(12 / 28)  # the first segment's 12 frames
     assert [i for i, _ in result.errors] == list(range(12)) and result.max_error_px < 3.0
+
+
+def test_a_comparison_across_precisions_is_said(tmp_path, caplog):
+    """GLAMpoints in float32 and in bfloat16 differ by tenths on single videos: a run compared
+    with an earlier one in the other precision says so; the precision survives the JSON."""
+    run = _video_result("glampoints/keyframes")
+    before = [dataclasses.replace(run, precision="float32")]
+    write_video_outputs(before, summarize_videos(before), tmp_path / "before")
+    previous = load_video_results(tmp_path / "before")
+    assert previous[0].precision == "float32"
+    with caplog.at_level(logging.WARNING, logger="mosaic.evaluate"):
+        compare_methods([dataclasses.replace(run, precision="float32")], previous)
+        assert not caplog.records
+        compare_methods([dataclasses.replace(run, precision="bfloat16")], previous)
+    assert "in bfloat16 here and in float32 in the earlier run" in caplog.text
