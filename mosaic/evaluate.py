@@ -1396,14 +1396,24 @@ def compare_methods(
         keys = [(method, key_now[r.video]) for r in runs]
         pairs = [(r, before[k]) for r, k in zip(runs, keys, strict=True) if k in before]
         rows.append(_paired(pairs, method, f"{method} (previous run)", rng, samples))
-        mixed = {(a.precision, b.precision) for a, b in pairs if a.precision != b.precision}
-        for now, then in sorted(mixed, key=str):
-            log.warning(
-                "%s ran in %s here and in %s in the earlier run: the differences include the "
-                "precision's (single videos swing by tenths between the two)",
-                method, now or "an unrecorded precision", then or "an unrecorded precision",
-            )  # fmt: skip
     return rows
+
+
+def warn_of_precisions(results: Sequence[VideoResult], previous: Sequence[VideoResult]) -> None:
+    """Say where a method's GLAMpoints ran in another precision in the earlier run: single
+    videos swing by tenths between float32 and bfloat16, so the differences include that."""
+    before = {r.detector: r.precision for r in previous}
+    mixed = {
+        (r.detector, r.precision, before[r.detector])
+        for r in results
+        if r.detector in before and r.precision != before[r.detector]
+    }
+    for method, now, then in sorted(mixed, key=str):
+        log.warning(
+            "%s ran in %s here and in %s in the earlier run: the differences include the "
+            "precision's (single videos swing by tenths between the two)",
+            method, now or "an unrecorded precision", then or "an unrecorded precision",
+        )  # fmt: skip
 
 
 def _video_keys(run: Sequence[VideoResult]) -> dict[str, str]:
@@ -1635,4 +1645,5 @@ def run_video_evaluation(
         "fidelity": fidelity,
     }
     write_video_outputs(results, summary, out_dir, meta, previous)
+    warn_of_precisions(results, previous)
     return results, summary

@@ -43,6 +43,7 @@ from mosaic.evaluate import (
     scale_matrix,
     score_answers,
     summarize_videos,
+    warn_of_precisions,
     write_video_outputs,
 )
 from mosaic.features import FeatureExtractor
@@ -673,7 +674,7 @@ def test_a_comparison_across_precisions_is_said(tmp_path, caplog):
     previous = load_video_results(tmp_path / "before")
     assert previous[0].precision == "float32"
     with caplog.at_level(logging.WARNING, logger="mosaic.evaluate"):
-        compare_methods([dataclasses.replace(run, precision="float32")], previous)
+        warn_of_precisions([dataclasses.replace(run, precision="float32")], previous)
         assert not caplog.records
-        compare_methods([dataclasses.replace(run, precision="bfloat16")], previous)
+        warn_of_precisions([dataclasses.replace(run, precision="bfloat16")], previous)
     assert "in bfloat16 here and in float32 in the earlier run" in caplog.text
