@@ -636,13 +636,12 @@ class ReflexMask:
         self._kept: Spots | None = None  # the last reflexes found
 
     @classmethod
-    def _surroundings(cls, gray: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    def _surroundings(cls, gray: np.ndarray, inside: np.ndarray) -> np.ndarray:
         """The grey level around each pixel: a median over ~`SURROUNDINGS_PX` (at a quarter of
         the size), which a spot smaller than half of it does not raise, and which follows
-        vignetting and illumination. Outside the view `mask` stands the view's median: the
-        dark border must not make the retina next to it look bright."""
+        vignetting and illumination. Outside the view (`inside` False) stands the view's
+        median: the dark border must not make the retina next to it look bright."""
         h, w = gray.shape
-        inside = mask > 0
         filled = np.where(inside, gray, np.uint8(np.median(gray[inside])))
         size = (max(w // 4, 1), max(h // 4, 1))
         small = cv2.resize(filled, size, interpolation=cv2.INTER_AREA)
@@ -662,7 +661,7 @@ class ReflexMask:
         inside = prepared.mask > 0
         if not inside.any():
             return prepared
-        self._recent.append(cv2.subtract(gray, self._surroundings(gray, prepared.mask)))
+        self._recent.append(cv2.subtract(gray, self._surroundings(gray, inside)))
         if len(self._recent) < self.WINDOW:
             return prepared
         lasting = np.minimum.reduce(self._recent) >= self._config.reflex_brightness
@@ -679,11 +678,12 @@ class ReflexMask:
         spot[0] = False  # background label
         if not spot.any():
             return prepared
-        found = Spots.of(_grown(spot[labels], self._config.overlay_margin_px + self.REACH_PX))
+        reflex = _grown(spot[labels], self._config.overlay_margin_px + self.REACH_PX)
+        found = Spots.of(reflex)
         # the same as the last frame's (common: a reflex holds still): one object for both, so
         # a long video keeps one copy per change, not per frame
         self.found = self._kept = self._kept if found == self._kept else found
-        return Prepared(prepared.gray, found.removed_from(prepared.mask))
+        return Prepared(prepared.gray, np.where(reflex > 0, np.uint8(0), prepared.mask))
 
 
 @dataclass(frozen=True)
