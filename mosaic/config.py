@@ -236,7 +236,7 @@ class Range:
         return above and below
 
     def __str__(self) -> str:
-        low, high = f"{self.low:g}", f"{self.high:g}"
+        low, high = _number(self.low), _number(self.high)
         if math.isinf(self.high):
             text = f"{'>' if self.low_open else '>='} {low}"
         else:
@@ -245,60 +245,81 @@ class Range:
         return f"0 (off) or {text}" if self.off else text
 
 
+def _number(value: float) -> str:
+    """A bound as a user writes it: 100000, not 1e+05; 0.0001, 0.1."""
+    return str(int(value)) if float(value).is_integer() and abs(value) < 1e15 else f"{value:g}"
+
+
+# Upper bounds follow from what each key sizes: a bound past which the code cannot run (OpenCV
+# takes a C int; a kernel or canvas of that side does not fit in memory) or past which the value
+# means nothing more (a window wider than any frame, a count longer than any video).
+KEYPOINTS = 100_000  # keypoints of a frame, and so matches and inliers (SIFT gets twice this)
+FRAMES = 1_000_000  # frames of a video: nine hours at 30 frames/s
+KEYFRAMES = 10_000  # keyframes held (each ~0.5 MB of features at 1000 keypoints)
+SIDE_PX = 32_768  # an image side: a canvas of this side takes more than 16 GB of buffers
+MARGIN_PX = 100  # a margin grown around a mask (a disc of 201 px: ~0.2 s an 800x600 frame)
+DESCRIPTOR_PX = 100  # a keypoint's diameter for the descriptor (detectors' own: 20 at most)
+
 AT_LEAST_0 = Range()
-ABOVE_0 = Range(low_open=True)
-AT_LEAST_1 = Range(1)
 FRACTION = Range(0, 1)  # [0, 1]
 GREY_LEVEL = Range(0, 255)
-#: The range of every numeric key; a key missing here (a new one) gets `AT_LEAST_0`.
+FRAME_COUNT = Range(0, FRAMES)
+#: The range of every numeric key (a test checks that each has one, and that the code runs at
+#: each bound); a key missing here (a new one) gets `AT_LEAST_0`.
 RANGES: dict[tuple[str, str], Range] = {
-    ("preprocess", "clahe_clip_limit"): ABOVE_0,
+    # a clip at 256 x the mean histogram bin clips nothing (a bin holds at most 256 x the mean)
+    ("preprocess", "clahe_clip_limit"): Range(0, 256, low_open=True),
     ("preprocess", "clahe_tile_grid"): Range(1, 64),
     ("preprocess", "bilateral_diameter_px"): Range(1, 31),
-    ("preprocess", "bilateral_sigma_color"): ABOVE_0,
-    ("preprocess", "bilateral_sigma_space"): ABOVE_0,
+    # wider than the grey scale (or than the 31 px window): the filter is a plain blur
+    ("preprocess", "bilateral_sigma_color"): Range(0, 1000, low_open=True),
+    ("preprocess", "bilateral_sigma_space"): Range(0, 100, low_open=True),
     ("preprocess", "fov_threshold"): GREY_LEVEL,
-    ("preprocess", "fov_erode_px"): AT_LEAST_0,
+    ("preprocess", "fov_erode_px"): Range(0, MARGIN_PX),
     ("preprocess", "overlay_max_range"): GREY_LEVEL,
-    ("preprocess", "overlay_margin_px"): AT_LEAST_0,
+    ("preprocess", "overlay_margin_px"): Range(0, MARGIN_PX),
     ("preprocess", "reflex_brightness"): Range(1, 255),
-    ("preprocess", "max_side_px"): Range(64, off=True),
-    ("preprocess", "fov_diameter_px"): Range(64, off=True),
-    ("features", "max_keypoints"): AT_LEAST_1,
-    ("features", "nms_window_px"): AT_LEAST_1,
+    ("preprocess", "max_side_px"): Range(64, SIDE_PX, off=True),
+    ("preprocess", "fov_diameter_px"): Range(64, SIDE_PX, off=True),
+    ("features", "max_keypoints"): Range(1, KEYPOINTS),
+    ("features", "nms_window_px"): Range(1, 100),  # 100 px: ~50 keypoints in an 800x600 frame
     ("features", "score_threshold"): Range(0, 1, high_open=True),  # scores lie in [0, 1]
-    ("features", "descriptor_size_px"): ABOVE_0,
-    ("features", "photo_descriptor_size_px"): ABOVE_0,
+    ("features", "descriptor_size_px"): Range(1, DESCRIPTOR_PX),
+    ("features", "photo_descriptor_size_px"): Range(1, DESCRIPTOR_PX),
     ("features", "detect_scale"): Range(0.1, 1),
     ("features", "extra_scale"): Range(0.1, 1, off=True),
-    ("features", "border_margin_px"): Range(0, 100),
+    ("features", "border_margin_px"): Range(0, MARGIN_PX),
     ("matching", "ratio"): Range(0, 1, low_open=True),
-    ("registration", "reproj_threshold_px"): ABOVE_0,
-    ("registration", "max_iters"): AT_LEAST_1,
+    ("registration", "reproj_threshold_px"): Range(0, 100, low_open=True),
+    ("registration", "max_iters"): Range(1, KEYPOINTS),  # OpenCV takes a C int
     # a probability: 1 would ask RANSAC for certainty
     ("registration", "confidence"): Range(0, 1, low_open=True, high_open=True),
-    ("registration", "min_inliers"): AT_LEAST_0,
-    ("registration", "perspective_prior"): AT_LEAST_0,
+    ("registration", "min_inliers"): Range(0, KEYPOINTS),
+    # an sd in frame half-diagonals: 1 leaves the perspective free, 1e-4 (0.02 px at the
+    # corners) holds it as 0 does; far smaller values overflow the prior's weight
+    ("registration", "perspective_prior"): Range(1e-4, 1, off=True),
     ("registration", "refine_levels"): Range(0, 6),
     ("registration", "track_window_px"): Range(9, 61, off=True),
-    ("compose", "max_canvas_px"): Range(64),
-    ("compose", "feather_px"): AT_LEAST_0,
+    ("compose", "max_canvas_px"): Range(64, SIDE_PX),
+    ("compose", "feather_px"): Range(0, 1000),  # longer: every weight scaled alike
     ("compose", "quality_threshold"): FRACTION,
-    ("pipeline", "step"): AT_LEAST_1,
-    ("pipeline", "reanchor_after"): AT_LEAST_0,
-    ("pipeline", "new_segment_after"): AT_LEAST_0,
-    ("pipeline", "max_frames"): AT_LEAST_0,
-    ("pipeline", "checkpoint_every_s"): AT_LEAST_0,
+    ("pipeline", "step"): Range(1, FRAMES),
+    ("pipeline", "reanchor_after"): FRAME_COUNT,
+    ("pipeline", "new_segment_after"): FRAME_COUNT,
+    ("pipeline", "max_frames"): FRAME_COUNT,
+    ("pipeline", "checkpoint_every_s"): Range(0, 86_400),  # a day
     ("keyframes", "min_overlap"): FRACTION,
-    ("keyframes", "promote_min_inliers"): AT_LEAST_0,
+    ("keyframes", "promote_min_inliers"): Range(0, KEYPOINTS),
     ("keyframes", "promote_inlier_ratio"): FRACTION,
     ("keyframes", "promote_coverage_ratio"): FRACTION,
-    ("keyframes", "max_keyframes"): AT_LEAST_1,
-    ("keyframes", "relocalise_candidates"): AT_LEAST_0,
-    ("keyframes", "bridge_frames"): AT_LEAST_0,
-    ("keyframes", "bridge_keyframes"): AT_LEAST_0,
+    ("keyframes", "max_keyframes"): Range(1, KEYFRAMES),
+    ("keyframes", "relocalise_candidates"): Range(0, KEYFRAMES),
+    ("keyframes", "bridge_frames"): FRAME_COUNT,
+    ("keyframes", "bridge_keyframes"): Range(0, KEYFRAMES),
     ("keyframes", "loop_min_overlap"): FRACTION,
-    ("keyframes", "tilt_step_px"): AT_LEAST_0,
+    # px per frame at the frame's corner: 0.01 holds the tilt, 100 leaves it free; far smaller
+    # values overflow the smoothness weight
+    ("keyframes", "tilt_step_px"): Range(0.01, 100, off=True),
     ("gating", "min_sharpness_ratio"): FRACTION,
     ("gating", "min_fov_fraction"): FRACTION,
 }

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from mosaic.config import (
+    RANGES,
     Config,
     config_from_dict,
     for_photographs,
@@ -46,11 +47,11 @@ def test_missing_keys_take_defaults(tmp_path):
         ("[features]\ndescriptor_size_px = inf\n", "descriptor_size_px must be a finite num"),
         ("[registration]\nreproj_threshold_px = nan\n", "reproj_threshold_px must be a finite"),
         ("[registration]\nconfidence = 1.5\n", r"confidence must be in \(0, 1\), got 1.5"),
-        ("[features]\nmax_keypoints = nan\n", "max_keypoints must be an integer >= 1, got float"),
+        ("[features]\nmax_keypoints = nan\n", r"max_keypoints must be an integer in \[1, 100000\]"),
         ("[features]\ndevice = 'gpu'\n", "device must be one of cpu, cuda"),
         ("[pipeline]\noverlap = 'yes'\n", "overlap must be one of auto, on, off, got 'yes'"),
         ("[pipeline]\noverlap = true\n", "overlap must be one of auto, on, off, got bool True"),
-        ("[preprocess]\nmax_side_px = 10\n", r"max_side_px must be 0 \(off\) or >= 64"),
+        ("[preprocess]\nmax_side_px = 10\n", r"max_side_px must be 0 \(off\) or in \[64, 32768\]"),
         ("[features]\nprecision = 'half'\n", "precision must be one of float32"),
         ("not toml [", "not valid TOML"),
         ("", "empty"),
@@ -103,10 +104,19 @@ def test_every_numeric_key_rejects_non_finite_negative_and_out_of_range_values(t
             config_from_dict({table: {key: allowed.high + 1}})
 
 
+@pytest.mark.parametrize(("table", "key", "kind"), list(_numeric_keys()))
+def test_every_numeric_key_has_its_own_bounded_range(table, key, kind):
+    """No key falls back to the open default: each has a finite upper bound (issue 40: values
+    past what OpenCV and numpy take were accepted and ended a run mid-way)."""
+    assert (table, key) in RANGES
+    assert math.isfinite(RANGES[table, key].high)
+
+
 def test_range_text():
     assert str(value_range("registration", "confidence")) == "in (0, 1)"
     assert str(value_range("features", "extra_scale")) == "0 (off) or in [0.1, 1]"
-    assert str(value_range("pipeline", "step")) == ">= 1"
+    assert str(value_range("pipeline", "step")) == "in [1, 1000000]"
+    assert str(value_range("registration", "perspective_prior")) == "0 (off) or in [0.0001, 1]"
     assert 1 not in value_range("registration", "confidence")
     assert math.nan not in value_range("compose", "feather_px")
 

@@ -448,6 +448,24 @@ def test_bad_config_values_are_one_line_naming_key_and_range(short_clip, tmp_pat
     assert not out.exists() and not out.with_suffix(".json").exists()
 
 
+def test_absurd_values_of_every_numeric_key_are_one_line_naming_the_key(short_clip, tmp_path):
+    """1e30, -1, NaN, inf (and for an integer key 2**40, which OpenCV cannot take as a C int)
+    in any numeric key of any table: one line naming the key through `mosaic build --config`,
+    before the first frame (issue 40: max_iters, descriptor_size_px and nms_window_px were
+    accepted and ended the run mid-way)."""
+    out = tmp_path / "m.png"
+    config = tmp_path / "c.toml"
+    for (table, key), default in _numeric_defaults().items():
+        huge = [2**40] if isinstance(default, int) else []
+        for value in ["1e30", "-1", "nan", "inf", *map(str, huge)]:
+            config.write_text(f"[{table}]\n{key} = {value}\n")
+            args = ["build", str(short_clip), "-o", str(out), "-c", str(config)]
+            line = _one_error_line(runner.invoke(app, args))
+            assert f"config [{table}] {key} must be" in line, (value, line)
+            assert str(value_range(table, key)) in line, line
+    assert list(tmp_path.iterdir()) == [config]  # no output of any run
+
+
 @pytest.mark.parametrize(("option", "value"), [("--step", "0"), ("--max-frames", "-1")])
 def test_bad_command_line_values_are_one_line(short_clip, tmp_path, option, value):
     args = ["build", str(short_clip), "-o", str(tmp_path / "m.png"), option, value]
@@ -482,9 +500,10 @@ def tiny_clip(tmp_path_factory) -> Path:
     )  # fmt: skip
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # numpy's overflow: a range too wide
 def test_every_value_a_config_accepts_runs(tiny_clip, tmp_path):
-    """No value inside a key's range ends in an exception: the ranges are the real limits
-    (each key at 0 where allowed and at its bounds, one short run each)."""
+    """No value inside a key's range ends in an exception or a numpy warning: the ranges are
+    the real limits (each key at 0 where allowed and at its bounds, one short run each)."""
     glampoints = Config()
     sift = with_overrides(Config(), features={"detector": "sift"})
     failures = []
