@@ -411,10 +411,29 @@ def _read_json(path: Path) -> dict[str, Any] | None:
         return None
 
 
-def _init_worker(threads: int) -> None:
-    """Pool worker start: its share of the cores, Ctrl-C ignored while idle."""
+def die_with_parent(parent_pid: int) -> None:
+    """Linux: have the kernel SIGKILL this process when its parent dies (killed by the OOM
+    killer, say), rather than finish its video for no one and wait for good; then exit at
+    once if the parent is already gone. Elsewhere nothing is done."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    pr_set_pdeathsig = 1  # <linux/prctl.h>
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0) != 0:
+        log.warning("prctl(PR_SET_PDEATHSIG): %s", os.strerror(ctypes.get_errno()))
+    if os.getppid() != parent_pid:  # the parent died before the call: nothing will signal
+        os._exit(1)
+
+
+def _init_worker(threads: int, parent_pid: int | None = None) -> None:
+    """Pool worker start: dies with the batch, its share of the cores, Ctrl-C ignored while
+    idle."""
     global _IN_WORKER
     _IN_WORKER = True
+    if parent_pid is not None:
+        die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     limit_threads(threads)
 
@@ -474,14 +493,18 @@ def run_local(
     fresh processes of `threads` threads each, one task per worker at a time. When a worker
     process dies, the tasks that may have been running in it are tried again one at a time at
     the end; a task whose process dies when it runs alone is failed. After Ctrl-C the running
-    videos (which write what they have) are waited for, then KeyboardInterrupt is raised."""
+    videos (which write what they have) are waited for, then KeyboardInterrupt is raised.
+    On Linux the workers die with this process (their parent-death signal fires when the
+    thread that started them ends: this one, which holds the pool until it returns)."""
     import multiprocessing
 
     queue, suspects = deque(tasks), deque[VideoTask]()
     context = multiprocessing.get_context("spawn")  # no fork of a process with threads
 
     def new_pool() -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(workers, context, initializer=_init_worker, initargs=(threads,))
+        return ProcessPoolExecutor(
+            workers, context, initializer=_init_worker, initargs=(threads, os.getpid())
+        )
 
     active: dict[Future[dict[str, Any]], VideoTask] = {}
     alone = False  # trying suspects, one at a time

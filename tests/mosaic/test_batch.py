@@ -1,12 +1,18 @@
 """`mosaic batch`: a folder of short synthetic videos and a corrupt file, through the CLI (local
-process pool) and on a local Ray; discovery, manifests, resume, the summary files."""
+process pool) and on a local Ray; discovery, manifests, resume, the summary files; signals to
+the `mosaic` console script (SIGKILL, Ctrl-C) and an unreachable Ray cluster."""
 
 from __future__ import annotations
 
 import csv
 import json
 import os
+import signal
+import subprocess
 import sys
+import time
+from collections.abc import Callable
+from contextlib import suppress
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -34,6 +40,8 @@ from tests.conftest import SAMPLE_IMAGE
 
 runner = CliRunner()
 IDS = ["corrupt", "deep__frames", "v0", "v1"]
+MOSAIC = Path(sys.executable).with_name("mosaic")  # the console script of this environment
+LINUX = sys.platform.startswith("linux") and Path("/proc/self/task").is_dir()
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +58,20 @@ def archive(tmp_path_factory):
     config = root / "sift.toml"
     config.write_text('[features]\ndetector = "sift"\n')
     return videos, config
+
+
+@pytest.fixture(scope="module")
+def long_videos(tmp_path_factory):
+    """in/: two 150-frame videos (over ten seconds each to build: time to signal the batch
+    mid-video); a SIFT config."""
+    root = tmp_path_factory.mktemp("long")
+    (root / "in").mkdir()
+    for seed in range(2):
+        params = SynthParams(n_frames=150, size=(200, 160), seed=seed, max_step_px=4.0)
+        write_synthetic_video(SAMPLE_IMAGE, root / "in" / f"v{seed}.mp4", params)
+    config = root / "sift.toml"
+    config.write_text('[features]\ndetector = "sift"\n')
+    return root / "in", config
 
 
 @pytest.fixture(scope="module")
@@ -303,6 +325,80 @@ def test_a_crashing_worker_fails_only_its_own_video(tmp_path):
         "crash": FAILED,
     }
     assert "died" in rows["crash"]["error"]
+
+
+# --------------------------------------------------------------------------------------------
+# The `mosaic` console script under signals
+# --------------------------------------------------------------------------------------------
+
+
+def _start(args: list, logs: Path) -> subprocess.Popen:
+    """`mosaic batch ARGS` in a session of its own, as a terminal's foreground job (Ctrl-C goes
+    to its whole process group); stdout / stderr into files in `logs`."""
+    with (logs / "stdout.txt").open("wb") as out, (logs / "stderr.txt").open("wb") as err:
+        command = [str(MOSAIC), "batch", *map(str, args)]
+        return subprocess.Popen(command, stdout=out, stderr=err, start_new_session=True)
+
+
+def _wait_until(ready: Callable[[], bool], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not ready():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+def _opened(out: Path, video_id: str) -> bool:
+    """Whether the video is being built: its log says it was opened."""
+    log = out / video_id / "log.txt"
+    return log.is_file() and "opened" in log.read_text(errors="replace")
+
+
+def _descendants(pid: int) -> set[int]:
+    """The processes under `pid` (Linux: /proc/PID/task/TID/children)."""
+    found: set[int] = set()
+    todo = [pid]
+    while todo:
+        for children in Path(f"/proc/{todo.pop()}/task").glob("*/children"):
+            with suppress(OSError):
+                new = {int(child) for child in children.read_text().split()} - found
+                found |= new
+                todo += new
+    return found
+
+
+def _alive(pid: int) -> bool:
+    """Whether `pid` runs (a zombie, dead but not yet reaped, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _stop(proc: subprocess.Popen, others: set[int]) -> None:
+    """Kill what a failed test may have left running."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(timeout=10)
+    for pid in filter(_alive, others):
+        with suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not LINUX, reason="the parent-death signal is Linux's; reads /proc")
+def test_workers_die_with_a_killed_batch(long_videos, tmp_path):
+    videos, config = long_videos
+    out = tmp_path / "out"
+    batch = _start([videos, "-o", out, "-c", config, "--workers", "2"], tmp_path)
+    workers: set[int] = set()
+    try:
+        _wait_until(lambda: _opened(out, "v0") and _opened(out, "v1"), 120, "both videos")
+        workers = _descendants(batch.pid)
+        assert len(workers) >= 2
+        batch.kill()  # as the OOM killer does: no handler runs
+        batch.wait(timeout=10)
+        _wait_until(lambda: not any(map(_alive, workers)), 10, f"the workers {workers} to die")
+    finally:
+        _stop(batch, workers)
 
 
 def test_ids_and_page_escape_odd_names():
