@@ -42,6 +42,8 @@ IMAGE_READ_SUFFIXES: frozenset[str] = frozenset(
 IMAGE_WRITE_SUFFIXES: frozenset[str] = frozenset(
     {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 )
+#: Suffixes accepted for a run's report.
+REPORT_SUFFIXES: frozenset[str] = frozenset({".json"})
 #: Consecutive failed reads after which a video stream is considered finished.
 MAX_CONSECUTIVE_FAILURES = 5
 
@@ -449,6 +451,35 @@ def check_output_path(
     if probe:
         _probe_writable(p)
     return p
+
+
+def check_distinct_paths(outputs: dict[str, Path], inputs: dict[str, Path] | None = None) -> None:
+    """Fail early if two outputs of one command (named by their option) are one file, or an
+    output is one of the inputs: the later write would replace the earlier one, or the input,
+    after the whole run. Paths compare resolved (`..`, symbolic links), and as files where both
+    exist (hard links)."""
+    named = list(outputs.items())
+    for i, (name, path) in enumerate(named):
+        for other, other_path in named[i + 1 :]:
+            if same_file(path, other_path):
+                raise OutputError(
+                    f"{name} and {other} are the same file, each output needs its own: {path}"
+                )
+        for other, input_path in (inputs or {}).items():
+            if same_file(path, input_path):
+                raise OutputError(f"{name} would write over the input {other}: {path}")
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether `a` and `b` name one file, existing or not (resolved: `..`, symbolic links;
+    compared as files where both exist: hard links)."""
+    a, b = Path(a).expanduser(), Path(b).expanduser()
+    try:
+        if a.resolve() == b.resolve():
+            return True
+        return os.path.samefile(a, b)
+    except (OSError, RuntimeError):  # one does not exist (yet), or a loop of links
+        return a.absolute() == b.absolute()
 
 
 def _probe_writable(p: Path) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import pytest
 from mosaic.errors import InputError, OutputError
 from mosaic.io import (
     Lookahead,
+    check_distinct_paths,
     check_output_path,
     natural_key,
     open_frames,
@@ -226,6 +228,25 @@ def test_check_output_path(tmp_path):
     assert earlier.read_bytes() == b"kept"
     with pytest.raises(OutputError, match="cannot write"):
         check_output_path(tmp_path / ("m" * 300 + ".png"))  # a name too long, for anyone
+
+
+def test_outputs_must_be_distinct_files_and_not_an_input(tmp_path):
+    """Two outputs of one command, or an output and an input, naming one file (spelt another
+    way, through a symbolic or a hard link) are refused: the later write would replace the
+    earlier one after the whole run (issue 40)."""
+    mosaic, report = tmp_path / "m.png", tmp_path / "m.json"
+    check_distinct_paths({"--output": mosaic, "--report": report}, {"VIDEO": tmp_path / "v.mp4"})
+    same = tmp_path / "sub" / ".." / "m.png"
+    with pytest.raises(OutputError, match=r"--output and --report are the same file.*m\.png"):
+        check_distinct_paths({"--output": mosaic, "--report": same})
+    mosaic.write_bytes(b"x")
+    (tmp_path / "soft.png").symlink_to(mosaic)
+    os.link(mosaic, tmp_path / "hard.png")
+    for other in ("soft.png", "hard.png"):
+        with pytest.raises(OutputError, match="same file"):
+            check_distinct_paths({"--warp": mosaic, "--matches": tmp_path / other})
+    with pytest.raises(OutputError, match="--warp would write over the input FIXED"):
+        check_distinct_paths({"--warp": tmp_path / "hard.png"}, {"FIXED": mosaic})
 
 
 def test_write_json_round_trip_with_numpy_values(tmp_path):
