@@ -12,6 +12,7 @@ import sys
 try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no traceback
     import json
     import logging
+    from importlib.metadata import PackageNotFoundError, version
     from pathlib import Path
     from typing import Annotated, NoReturn
 
@@ -27,6 +28,29 @@ except KeyboardInterrupt:
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 log = logging.getLogger("glampoints")
+
+
+def _print_version(value: bool) -> None:
+    """`--version`: the installed retina-mosaic's (glampoints ships in it)."""
+    if value:
+        try:
+            installed = version("retina-mosaic")
+        except PackageNotFoundError:  # a source tree that was never installed
+            installed = "unknown (not installed)"
+        typer.echo(f"glampoints {installed}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    show_version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True, help="Print the version and exit."
+        ),
+    ] = False,
+) -> None:
+    pass
 
 
 def _fail(message: str) -> NoReturn:
@@ -172,11 +196,22 @@ def train(
 @app.command()
 def export(
     checkpoint: Annotated[Path, typer.Argument(help="training checkpoint (best.pt / last.pt)")],
-    output: Annotated[Path, typer.Option("-o", "--output", help="weights file")] = DEFAULT_WEIGHTS,
+    output: Annotated[
+        Path,
+        typer.Option(
+            "-o", "--output", help="weights file to write (not the weights shipped in the package)"
+        ),
+    ],
 ) -> None:
     """Write the model weights of a training checkpoint as a shippable weights file."""
     from glampoints.training import TrainingError, export_weights
+    from mosaic.io import same_file
 
+    if same_file(output, DEFAULT_WEIGHTS):  # every run without --weights loads them
+        _fail(
+            f"{output} is the weights shipped in the package: export to another file "
+            "(and copy it over them by hand to replace them on purpose)"
+        )
     try:
         dest = export_weights(checkpoint, output)
     except (TrainingError, OSError) as exc:
@@ -189,22 +224,33 @@ def bench(
     width: Annotated[int, typer.Option(min=16)] = 660,
     height: Annotated[int, typer.Option(min=16)] = 350,
     repeats: Annotated[int, typer.Option(min=1)] = 20,
-    precision: Annotated[str, typer.Option(help="float32 | bfloat16")] = "float32",
+    precision: Annotated[
+        str,
+        typer.Option(
+            help="float32 | bfloat16 | auto (as the app: bfloat16 where the CPU has it in hardware)"
+        ),
+    ] = "auto",
     threads: Annotated[int | None, typer.Option(min=1)] = None,
     weights: Annotated[Path | None, typer.Option(help="weights file (default: shipped)")] = None,
 ) -> None:
     """Time the score map and NMS on the CPU for an image of WIDTH x HEIGHT."""
     import torch
 
+    from glampoints.detector import cpu_has_native_bfloat16
+    from mosaic.config import FeaturesConfig
+    from mosaic.features import resolve_precision
+
     if threads is not None:
         torch.set_num_threads(threads)
+    ran = resolve_precision(FeaturesConfig(precision=precision), cpu_has_native_bfloat16())
     try:
-        det = GlamPoints.from_pretrained(weights, precision=precision)
+        det = GlamPoints.from_pretrained(weights, precision=ran)
     except (WeightsError, ValueError) as exc:
         _fail(str(exc))
     res = benchmark(det, (height, width), repeats)
+    named = f"{ran} ({precision})" if precision == "auto" else ran
     typer.echo(
-        f"{width}x{height} {precision}, {int(res['threads'])} threads: "
+        f"{width}x{height} {named}, {int(res['threads'])} threads: "
         f"score map {res['score_map_ms']:.1f} ms (min {res['score_map_min_ms']:.1f}), "
         f"NMS {res['nms_ms']:.1f} ms (medians)"
     )
