@@ -21,6 +21,7 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
     import time
     from collections.abc import Iterator
     from contextlib import contextmanager
+    from importlib.metadata import PackageNotFoundError, version
     from pathlib import Path
     from typing import Annotated, Any
 
@@ -34,7 +35,10 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
     from mosaic.errors import InputError, MosaicError
     from mosaic.features import DETECTORS, FeatureExtractor
     from mosaic.io import (
+        IMAGE_WRITE_SUFFIXES,
+        REPORT_SUFFIXES,
         VideoInfo,
+        check_distinct_paths,
         check_output_path,
         open_frames,
         read_image,
@@ -63,6 +67,33 @@ log = logging.getLogger("mosaic")
 EXIT_FAILED = 1
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
+VERBOSE_HELP = "Log each stage's details (INFO), OpenCV's own lines and an error's traceback."
+
+
+def package_version() -> str:
+    """The installed version of retina-mosaic (both `mosaic` and `glampoints` ship in it)."""
+    try:
+        return version("retina-mosaic")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"mosaic {package_version()}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    show_version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True, help="Print the version and exit."
+        ),
+    ] = False,
+) -> None:
+    pass
 
 
 @contextmanager
@@ -166,8 +197,15 @@ def _detector_row(summary: dict[str, Any]) -> str:
     return f"{summary['detector']} ({precision})" if precision else str(summary["detector"])
 
 
+def _cell(value: Any) -> str:
+    """A summary value; "-" where there is none (a one-frame video has no quality: no mosaic
+    under its frame to compare with)."""
+    return "-" if value is None else str(value)
+
+
 def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> None:
     summary = report["summary"]
+    quality = _cell(summary.get("quality"))
     rows = [
         ("frames read", summary["frames_read"]),
         ("registered", summary["registered"]),
@@ -177,7 +215,7 @@ def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> N
         ("longest registered run", summary["longest_registered_run"]),
         ("segments", _segments_row(report)),
         ("mean matches / inliers", f"{summary['mean_matches']} / {summary['mean_inliers']}"),
-        ("quality / flagged", f"{summary.get('quality')} / {summary.get('quality_flagged', 0)}"),
+        ("quality / flagged", f"{quality} / {summary.get('quality_flagged', 0)}"),
         ("frames per second", summary["fps"]),
         ("detector", _detector_row(summary)),
     ]
@@ -188,7 +226,7 @@ def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> N
     if summary.get("reflex_frames"):  # lens reflexes left out of those frames
         rows.insert(4, ("lens reflexes masked", f"{summary['reflex_frames']} frames"))
     width = max(len(name) for name, _ in rows)
-    typer.echo("\n".join(f"{name:<{width}}  {value}" for name, value in rows))
+    typer.echo("\n".join(f"{name:<{width}}  {_cell(value)}" for name, value in rows))
     typer.echo(f"mosaic: {output}")
     segments = report.get("segments") or []
     for segment in segments if len(segments) > 1 else []:
@@ -267,7 +305,7 @@ def build(
     rerun_canvas_every: Annotated[
         int, typer.Option(min=1, help="Send the mosaic canvas to the viewer every N frames.")
     ] = 10,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Build a retina mosaic from a video, streaming frame by frame."""
     _setup_logging(verbose)
@@ -282,9 +320,15 @@ def build(
                 on_failure=on_failure,
                 strategy=strategy,
             )
-            output = check_output_path(output)
-            report_path = check_output_path(report or output.with_suffix(".json"))
+            output = check_output_path(output, IMAGE_WRITE_SUFFIXES)
+            report_path = report or output.with_suffix(".json")
             rerun, rerun_target = _viewer_args(rerun, rerun_target, viewer_flag, output)
+            recording = {"--rerun-target": Path(str(rerun_target))} if rerun == "save" else {}
+            check_distinct_paths(
+                {"--output": output, "--report": report_path, **recording},
+                {"VIDEO": video} | ({"--config": config_path} if config_path else {}),
+            )
+            report_path = check_output_path(report_path, REPORT_SUFFIXES)
 
             def viewer(info: VideoInfo) -> Viewer:  # made once the input is open
                 made.append(
@@ -369,7 +413,7 @@ def batch(
         ),
     ] = None,
     rerun: Annotated[str, typer.Option(help="off | save (OUT_DIR/<id>/recording.rrd).")] = "off",
-    verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Build the mosaics of many videos: one folder per video, OUT_DIR/summary.csv / .json and
     a browsable OUT_DIR/index.html. Exit 0: all built, 1: any failed, 130: interrupted."""
@@ -493,12 +537,13 @@ def synth(
             "larger, the less overlap and the more curvature between the two).",
         ),
     ] = 16.0,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json), or
     pairs of photographs of a curved retina with exact control points (--curved-pairs)."""
     from mosaic.io import sample_image_path
 
-    _setup_logging(False)
+    _setup_logging(verbose)
     with _user_errors():
         if hard and realistic:
             raise InputError("choose one of --hard and --realistic")
@@ -639,9 +684,10 @@ def register(
         Path | None,
         typer.Option(help="Image: both images side by side, keypoints and inlier matches drawn."),
     ] = None,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Register MOVING onto FIXED and print H_moving_to_fixed (full-resolution pixels)."""
-    _setup_logging(False)
+    _setup_logging(verbose)
     with _user_errors():
         if model not in ("auto", *PAIR_MODELS):
             raise InputError(
@@ -651,10 +697,15 @@ def register(
             given = [n for n, v in (("FIXED/MOVING", fixed or moving), ("--warp", warp),
                                     ("--matches", matches)) if v]  # fmt: skip
             raise InputError(f"{' and '.join(given)}: one pair's; not with --pairs")
+        given = {"--warp": warp, "--matches": matches}
+        check_distinct_paths(
+            {name: path for name, path in given.items() if path is not None},
+            {name: path for name, path in (("FIXED", fixed), ("MOVING", moving)) if path},
+        )
         if warp is not None:
-            warp = check_output_path(warp)
+            warp = check_output_path(warp, IMAGE_WRITE_SUFFIXES)
         if matches is not None:
-            matches = check_output_path(matches)
+            matches = check_output_path(matches, IMAGE_WRITE_SUFFIXES)
         config = for_photographs(_config(config_path, detector))
         extractor = FeatureExtractor(config.features)
         if pairs is not None:
@@ -708,12 +759,16 @@ def register(
 
 
 def _print_pair(result: dict[str, Any]) -> None:
-    """The human-readable answer of `register` for one pair."""
-    typer.echo(f"status: {result['status']}" + (f" ({result['reason']})" * bool(result["reason"])))
-    typer.echo(
-        f"model: {result['model']}  matches: {result['n_matches']}  inliers: {result['n_inliers']}"
-        + (f"  residual: {result['residual_px']:.2f} px" * (result["residual_px"] is not None))
-    )
+    """The human-readable answer of `register` for one pair (a failed pair has no model and
+    no residual: those are left out, not printed as None)."""
+    reason = f" ({result['reason']})" if result["reason"] else ""
+    typer.echo(f"status: {result['status']}{reason}")
+    counts = f"matches: {result['n_matches']}  inliers: {result['n_inliers']}"
+    if result["model"] is not None:
+        counts = f"model: {result['model']}  {counts}"
+    if result["residual_px"] is not None:
+        counts += f"  residual: {result['residual_px']:.2f} px"
+    typer.echo(counts)
     if result["working_scale"] is not None:
         s = result["working_scale"]
         typer.echo(
@@ -764,7 +819,7 @@ def evaluate(
             "itself there, paired over the videos both runs hold (e.g. before / after a change).",
         ),
     ] = None,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Compare detectors and strategies on videos: frames until failure, accuracy vs
     VIDEO.gt.json, drift, speed; paired differences with bootstrap intervals."""
@@ -827,11 +882,12 @@ def bench(
             "with the most own time (0: none)."
         ),
     ] = 0,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Time the whole pipeline per detector on a synthetic video (ms per stage, frames/s)."""
     from mosaic.bench import environment, format_table, profile_pipeline, run_bench
 
-    _setup_logging(False)
+    _setup_logging(verbose)
     with _user_errors():
         names = [name.strip() for name in (detector or BENCH_DETECTORS).split(",") if name.strip()]
         unknown = [name for name in names if name not in DETECTORS]

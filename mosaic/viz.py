@@ -593,7 +593,7 @@ def _viewer_executable() -> str:
     ):
         raise OutputError(
             "rerun spawn needs a display (DISPLAY/WAYLAND_DISPLAY unset): "
-            "use --rerun serve and open the printed URL, or --rerun save FILE.rrd"
+            "use --rerun serve and open the printed URL, or --rerun save --rerun-target FILE.rrd"
         )
     found = shutil.which("rerun") or shutil.which("rerun", path=str(Path(sys.executable).parent))
     if found is None:

@@ -6,10 +6,12 @@ import json
 import os
 import re
 import signal
+import sys
 
 import cv2
 import numpy as np
 import pytest
+import typer
 from typer.testing import CliRunner
 
 import mosaic.cli
@@ -352,6 +354,74 @@ def test_register_pair_without_overlap_fails_with_a_clear_status(tmp_path):
     out = json.loads(result.output)
     assert out["status"] == "failed" and out["reason"] and out["H_moving_to_fixed"] is None
     assert out["Q_moving_to_fixed"] is None
+
+
+def test_register_prints_a_failed_pair_without_an_internal_error(tmp_path):
+    """Two unrelated photographs, answered in text (not --json): the failure and its reason,
+    exit 1; no residual or model printed as None (issue 40: the residual's format crashed on
+    None), and -v is taken as by the other commands."""
+    for name, seed in (("a.png", 1), ("b.png", 2)):
+        noise = np.random.default_rng(seed).uniform(0, 255, (400, 400)).astype(np.float32)
+        img = cv2.GaussianBlur(noise, (0, 0), 3)
+        cv2.imwrite(str(tmp_path / name), cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX))
+    for verbose in ([], ["-v"]):
+        args = ["register", str(tmp_path / "a.png"), str(tmp_path / "b.png"), *verbose]
+        result = CliRunner().invoke(app, args)
+        assert result.exit_code == 1, result.output
+        assert result.exception is None or isinstance(result.exception, SystemExit)
+        assert result.stdout.startswith("status: failed (") and "None" not in result.stdout
+        assert "matches: " in result.stdout and "internal error" not in result.output
+
+
+def test_build_of_one_frame_prints_no_none(video, tmp_path):
+    """A one-frame video has no quality (no mosaic under its frame): the summary says "-"."""
+    out = tmp_path / "m.png"
+    args = ["build", str(video), "-o", str(out), "--detector", "sift", "--max-frames", "1"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "None" not in result.stdout
+    assert re.search(r"^quality / flagged\s+- / 0$", result.stdout, re.M), result.stdout
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the display check is Linux's")
+def test_the_viewer_without_a_display_suggests_options_that_parse(video, tmp_path, monkeypatch):
+    """`--viewer` with no display is one line whose suggested options parse with `mosaic
+    build` as they are written, and the recording one writes its file (issue 40: it said
+    `--rerun save FILE.rrd`, which does not parse)."""
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.chdir(tmp_path)
+    base = ["build", str(video), "-o", "m.png", "--detector", "sift", "--max-frames", "2"]
+    result = runner.invoke(app, [*base, "--viewer"])
+    _one_line_error(result, "needs a display")
+    suggested = re.findall(r"(?:--[a-z-]+ [^\s,-]\S*(?: |$))+", result.output.strip())
+    assert [s.split()[:2] for s in suggested] == [["--rerun", "serve"], ["--rerun", "save"]]
+    command = typer.main.get_command(app).commands["build"]
+    for options in suggested:
+        with command.make_context("build", [*base[1:], *options.split()]) as context:
+            assert context.params["rerun"] == options.split()[1]
+    save = suggested[1].split()
+    assert save[2:] == ["--rerun-target", "FILE.rrd"]
+    result = runner.invoke(app, [*base, *save])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "FILE.rrd").stat().st_size > 0
+
+
+def test_version_and_the_help_of_every_verbose_option():
+    """`mosaic --version` and `glampoints --version` print the installed version, exit 0;
+    every command's -v/--verbose says what it does."""
+    from importlib.metadata import version
+
+    from glampoints.cli import app as glampoints_app
+
+    for tool, tool_app in (("mosaic", app), ("glampoints", glampoints_app)):
+        result = CliRunner().invoke(tool_app, ["--version"])
+        assert result.exit_code == 0, result.output
+        assert result.stdout == f"{tool} {version('retina-mosaic')}\n"
+    commands = typer.main.get_command(app).commands
+    for name in ("build", "batch", "evaluate", "register", "synth", "bench"):
+        (verbose,) = [p for p in commands[name].params if "--verbose" in getattr(p, "opts", ())]
+        assert "-v" in verbose.opts and verbose.help, name
 
 
 def test_build_of_the_shipped_sample_matches_its_ground_truth(tmp_path):

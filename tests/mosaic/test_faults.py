@@ -419,6 +419,74 @@ def test_a_name_the_file_system_refuses_fails_before_the_first_frame(short_clip,
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    ("options", "fragment"),
+    [
+        (["-o", "out.json"], "unsupported output format '.json'"),  # a report is no mosaic
+        (["-o", "m.png", "--report", "r.png"], "unsupported output format '.png' (use json)"),
+        (["-o", "m.txt"], "unsupported output format '.txt'"),
+        (["-o", "m.png", "--rerun", "save", "--rerun-target", "r.json"], "use rrd"),
+    ],
+)
+def test_an_output_format_that_cannot_be_written_fails_before_the_first_frame(
+    short_clip, tmp_path, monkeypatch, options, fragment
+):
+    """The mosaic takes only the image formats OpenCV writes, the report only JSON, the
+    recording only .rrd: found before the first frame, not when the whole run is written
+    (issue 40: `-o out.json` ran the whole video, then could not encode it)."""
+    monkeypatch.chdir(tmp_path)
+    result = runner.invoke(app, ["build", str(short_clip), *options])
+    assert fragment in _one_error_line(result)
+    assert "frames read" not in result.stdout
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        ["-o", "m.png", "--report", "m.png"],
+        ["-o", "m.png", "--report", "sub/../m.png"],
+        ["-o", "m.png", "--report", "link.json"],  # a link to the mosaic
+        ["-o", "m.png", "--rerun", "save", "--rerun-target", "rec.rrd", "--report", "m.rrd.json"],
+    ],
+)
+def test_outputs_of_one_build_must_be_distinct_files(short_clip, tmp_path, monkeypatch, options):
+    """Two outputs naming one file (spelt another way, or through a link) are one line, exit
+    2, before the first frame (issue 40: `-o m.png --report m.png` exited 0 with the mosaic
+    overwritten by the report)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "link.json").symlink_to("m.png")
+    (tmp_path / "m.rrd.json").symlink_to("rec.rrd")
+    result = runner.invoke(app, ["build", str(short_clip), *options])
+    line = _one_error_line(result)
+    assert "are the same file" in line and ("--report" in line), line
+    assert "frames read" not in result.stdout
+    assert not (tmp_path / "m.png").exists() and not (tmp_path / "rec.rrd").exists()
+
+
+def test_outputs_of_one_register_must_be_distinct_and_not_its_inputs(tmp_path):
+    """`register --warp X --matches X` and `--warp FIXED` are refused before registering;
+    `--warp` and `--matches` take only image formats."""
+    fixed, moving = tmp_path / "a.png", tmp_path / "b.png"
+    for path, seed in ((fixed, 1), (moving, 2)):
+        cv2.imwrite(str(path), vessel_image((160, 160), seed=seed))
+    kept = fixed.read_bytes()
+    pair = ["register", str(fixed), str(moving), "--detector", "sift"]
+    cases = [
+        (["--warp", str(tmp_path / "x.png"), "--matches", str(tmp_path / "x.png")], "same file"),
+        (["--warp", str(fixed)], "--warp would write over the input FIXED"),
+        (["--matches", str(tmp_path / "sub" / ".." / "b.png")], "over the input MOVING"),
+        (["--warp", str(tmp_path / "w.json")], "unsupported output format '.json'"),
+    ]
+    (tmp_path / "sub").mkdir()
+    for options, fragment in cases:
+        result = runner.invoke(app, [*pair, *options])
+        assert fragment in _one_error_line(result), options
+        assert "status" not in result.stdout
+    assert fixed.read_bytes() == kept and not (tmp_path / "x.png").exists()
+
+
 # --------------------------------------------------------------------------------------------
 # Config values
 # --------------------------------------------------------------------------------------------
@@ -428,13 +496,13 @@ def test_a_name_the_file_system_refuses_fails_before_the_first_frame(short_clip,
     ("text", "key", "allowed"),
     [
         ("[features]\ndetect_scale = nan\n", "[features] detect_scale", "in [0.1, 1]"),
-        ("[features]\ndescriptor_size_px = inf\n", "[features] descriptor_size_px", "> 0"),
-        ("[registration]\nreproj_threshold_px = nan\n", "reproj_threshold_px", "> 0"),
+        ("[features]\ndescriptor_size_px = inf\n", "[features] descriptor_size_px", "in [1, 100]"),
+        ("[registration]\nreproj_threshold_px = nan\n", "reproj_threshold_px", "in (0, 100]"),
         ("[registration]\nconfidence = 1.5\n", "[registration] confidence", "in (0, 1)"),
         ("[registration]\nconfidence = 0\n", "[registration] confidence", "in (0, 1)"),
-        ("[compose]\nmax_canvas_px = -inf\n", "[compose] max_canvas_px", ">= 64"),
+        ("[compose]\nmax_canvas_px = -inf\n", "[compose] max_canvas_px", "in [64, 32768]"),
         ("[keyframes]\nmin_overlap = 2.0\n", "[keyframes] min_overlap", "in [0, 1]"),
-        ("[pipeline]\ncheckpoint_every_s = -1\n", "checkpoint_every_s", ">= 0"),
+        ("[pipeline]\ncheckpoint_every_s = -1\n", "checkpoint_every_s", "in [0, 86400]"),
     ],
 )
 def test_bad_config_values_are_one_line_naming_key_and_range(short_clip, tmp_path, text, key,
