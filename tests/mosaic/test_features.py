@@ -249,16 +249,18 @@ def test_textured_equals_the_variance_of_the_blurred_float_image(shape):
     np.testing.assert_array_equal(_textured(gray, xy), expected)
 
 
+@pytest.mark.both_precisions
 def test_keypoints_keep_off_the_view_border_that_is_fixed_to_the_camera(fundus):
     """A faint, blurred view of the retina moved 11 px under a fixed aperture: the structure
     that matches best is the aperture's border, which has not moved. Keypoints up to the
-    border (margin 0) make a registration that passes the failure rules 11 px off (measured
-    44 inliers, at zero motion); with the default margin no keypoint lies within 12 px of the
-    mask's edge, the still matches are a quarter as many and the registration either fails or
-    follows the retina (measured: 30 inliers, 2.3 px off; with the 6 px descriptor and an 8 px
-    margin it failed, with the 9 px descriptor and an 8 px margin the border pulled it 5 px
-    off). The points are dropped after detection: those left are the margin-0 points, not
-    weaker ones."""
+    border (margin 0) give matches that stand still and registrations pulled towards zero
+    motion; with the default margin no keypoint lies within 12 px of the mask's edge, the
+    still matches are at most half as many and the registrations follow the retina.
+
+    The scene is faint on purpose, so one noise draw's registration swings by pixels with the
+    CPU and precision: the claims are over six draws. "Pulled" and "follows" are measured
+    against half the motion (11 px): nearer the border's zero motion or the retina's. The
+    points are dropped after detection: those left are the margin-0 points, not weaker ones."""
     from mosaic.matching import match_descriptors
     from mosaic.registration import estimate_motion
 
@@ -267,31 +269,43 @@ def test_keypoints_keep_off_the_view_border_that_is_fixed_to_the_camera(fundus):
     aperture = np.zeros(a.shape[:2], np.uint8)
     cv2.ellipse(aperture, (330, 175), (320, 170), 0, 0, 360, 255, -1)
     config = Config()
-    views = []
-    for seed, image in enumerate((a, b)):
-        g = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 4.5) * 0.3
-        g += np.random.default_rng(seed).normal(0, 4, g.shape)
-        g[aperture == 0] = 4
-        views.append(prepare(np.clip(g, 0, 255).astype(np.uint8), config.preprocess))
-    results = {}
-    for margin in (0.0, config.features.border_margin_px):
-        extractor = FeatureExtractor(
-            with_overrides(config, features={"border_margin_px": margin}).features
-        )
-        fa, fb = extractor(views[0]), extractor(views[1])
-        m = match_descriptors(fa.descriptors, fb.descriptors, config.matching)
-        still = int((np.linalg.norm(fa.xy[m.idx_a] - fb.xy[m.idx_b], axis=1) < 2).sum())
-        reg = estimate_motion(fb.xy[m.idx_b], fa.xy[m.idx_a], config.registration, (350, 660))
-        results[margin] = (fa, still, reg)
-    _, still_0, reg_0 = results[0.0]
-    assert reg_0.ok and np.abs(reg_0.H_cur_to_prev[:2, 2] - [11.0, -5.0]).max() > 5.0
-    fa, still, reg = results[config.features.border_margin_px]
-    assert still <= still_0 / 2, (still, still_0)
-    assert not reg.ok or np.abs(reg.H_cur_to_prev[:2, 2] - [11.0, -5.0]).max() < 3.0
-    inside = cv2.distanceTransform(np.pad(views[0].mask, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
-    xi, yi = np.round(fa.xy).astype(int).T
-    assert inside[yi, xi].min() >= config.features.border_margin_px - 1  # a pixel's rounding
-    # dropped after detection: the same strongest points, not weaker ones filling the budget
-    fa_0 = results[0.0][0]
-    kept = (np.abs(fa.xy[:, None] - fa_0.xy[None]).max(axis=2) == 0).any(axis=1)
-    assert kept.all() and len(fa) < len(fa_0)
+    margins = (0.0, config.features.border_margin_px)
+    extractors = {
+        m: FeatureExtractor(with_overrides(config, features={"border_margin_px": m}).features)
+        for m in margins
+    }
+    errors: dict[float, list[float]] = {m: [] for m in margins}
+    still: dict[float, int] = dict.fromkeys(margins, 0)
+    for draw in range(6):
+        views = []
+        for seed, image in enumerate((a, b)):
+            g = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 4.5) * 0.3
+            g += np.random.default_rng(2 * draw + seed).normal(0, 4, g.shape)
+            g[aperture == 0] = 4
+            views.append(prepare(np.clip(g, 0, 255).astype(np.uint8), config.preprocess))
+        for margin, extractor in extractors.items():
+            fa, fb = extractor(views[0]), extractor(views[1])
+            m = match_descriptors(fa.descriptors, fb.descriptors, config.matching)
+            still[margin] += int(
+                (np.linalg.norm(fa.xy[m.idx_a] - fb.xy[m.idx_b], axis=1) < 2).sum()
+            )
+            reg = estimate_motion(fb.xy[m.idx_b], fa.xy[m.idx_a], config.registration, (350, 660))
+            # refused by the failure rules: not pulled (nan, left out of the mean)
+            error = np.abs(reg.H_cur_to_prev[:2, 2] - [11.0, -5.0]).max() if reg.ok else np.nan
+            errors[margin].append(float(error))
+            if draw == 0:
+                if margin == 0:
+                    fa_0 = fa
+                else:
+                    inside = cv2.distanceTransform(np.pad(views[0].mask, 1), cv2.DIST_L2, 5)
+                    xi, yi = np.round(fa.xy).astype(int).T
+                    # no point within the margin of the mask's edge (a pixel's rounding)
+                    assert inside[1:-1, 1:-1][yi, xi].min() >= margin - 1
+                    # dropped after detection: the same strongest points, not weaker ones
+                    kept = (np.abs(fa.xy[:, None] - fa_0.xy[None]).max(axis=2) == 0).any(axis=1)
+                    assert kept.all() and len(fa) < len(fa_0)
+    half = 11.0 / 2
+    assert np.nanmean(errors[0.0]) > half, errors  # without the margin: pulled to the border
+    assert np.isfinite(errors[margins[1]]).sum() >= 3, errors  # with it: mostly registered,
+    assert np.nanmean(errors[margins[1]]) < half, errors  # and following the retina
+    assert still[margins[1]] <= still[0.0] / 2, still

@@ -6,11 +6,14 @@ images of several modalities); skipped where the shared data is absent: the sing
 sample image is too few pairs of one healthy eye to rank detectors. Measured with the shipped
 weights and the photographs' 6 px descriptor (`photo_descriptor_size_px`) for GLAMpoints:
 55.6 % vs SIFT's 55.0 % of these 180 pairs (at the video frames' 9 px 52.8 %, at the former
-10 px 51.1 %: see the model card).
+10 px 51.1 %: see the model card). So near each other, which one is ahead depends on the CPU
+and precision; the test claims what a paired test on these pairs can tell: GLAMpoints is not
+worse than SIFT beyond the pairs' noise.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from glampoints.detector import DEFAULT_WEIGHTS
@@ -28,17 +31,47 @@ pytestmark = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason="no shippe
 VAL = SHARED_DATA / "retina" / "val" / "lmc"
 
 
+def not_worse_beyond_noise(ours: np.ndarray, theirs: np.ndarray, z: float = 2.0) -> bool:
+    """Whether paired successes `ours` are not below `theirs` by more than `z` standard errors
+    of the paired difference (McNemar: only the pairs where the two disagree carry it)."""
+    n = len(ours)
+    discordant = int(np.sum(ours != theirs))
+    difference = (int(ours.sum()) - int(theirs.sum())) / n
+    return difference >= -z * max(np.sqrt(discordant), 1.0) / n
+
+
+def test_the_paired_rule_tells_a_worse_detector_from_an_equal_one():
+    """The rule above: equal rates pass; 20 points fewer of 180 fail; 3 points fewer, with 17
+    pairs where the two disagree (either way), pass."""
+    rng = np.random.default_rng(0)
+    theirs = rng.random(180) < 0.55
+    flipped = np.flatnonzero(theirs)
+    assert not_worse_beyond_noise(theirs.copy(), theirs)
+    worse = theirs.copy()
+    worse[flipped[:36]] = False  # 20 points fewer
+    assert not not_worse_beyond_noise(worse, theirs)
+    slightly = theirs.copy()
+    slightly[flipped[:10]] = False
+    slightly[np.flatnonzero(~theirs)[:7]] = True
+    assert not_worse_beyond_noise(slightly, theirs)
+
+
 @pytest.mark.slow
+@pytest.mark.both_precisions
 @pytest.mark.skipif(not VAL.is_dir(), reason="validation split not available")
-def test_glampoints_registers_at_least_as_many_pairs_as_sift(tmp_path):
-    # 10 pairs per image (180 pairs): fewer, and one pair moves the verdict by several points
+def test_glampoints_registers_as_many_pairs_as_sift_within_the_noise(tmp_path):
+    # 10 pairs per image (180 pairs): fewer, and the noise covers any difference
     dataset = load_synthetic(VAL, seed=0, pairs_per_image=10)
-    _, summary = run_pair_evaluation(dataset, Config(), ["glampoints", "sift"], tmp_path / "out")
-    by_name = {row["detector"]: row for row in summary}
-    glam, sift = by_name["glampoints"], by_name["sift"]
-    assert glam["pairs"] == sift["pairs"] >= 100
-    assert glam["acceptable_pct"] >= sift["acceptable_pct"], (glam, sift)
-    assert glam["true_positives"] > 0
+    results, summary = run_pair_evaluation(
+        dataset, Config(), ["glampoints", "sift"], tmp_path / "out"
+    )
+    ok = {
+        name: np.array([r.status == "acceptable" for r in results if r.detector == name])
+        for name in ("glampoints", "sift")
+    }
+    assert len(ok["glampoints"]) == len(ok["sift"]) >= 100
+    assert not_worse_beyond_noise(ok["glampoints"], ok["sift"]), summary
+    assert {r["detector"]: r["true_positives"] for r in summary}["glampoints"] > 0
 
 
 def test_shipped_weights_register_a_known_pair_to_a_fraction_of_a_pixel(fundus):

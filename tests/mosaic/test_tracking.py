@@ -414,25 +414,26 @@ def test_tracked_inliers_lower_the_error_of_a_realistic_video_without_perspectiv
     assert errors[31] < 0.85 * errors[0], errors
 
 
-def test_lens_reflexes_fixed_in_the_frame_do_not_hold_the_frames_back(fundus):
+@pytest.mark.slow
+@pytest.mark.both_precisions
+def test_lens_reflexes_fixed_in_the_frame_are_masked_and_every_frame_placed(fundus):
     """Bright reflections of the fundus lens stay near one place of the frame while the retina
-    moves: points on their edges match where the camera was, and tracking windows that hold
-    them are pulled there too. With `[preprocess] reflex_mask` a realistic clip with three of
-    them is placed nearly as well as without them (measured: mean error 0.52 px against 0.43);
-    without the mask its error doubles (1.05 px)."""
+    moves. `[preprocess] reflex_mask` finds them from the 15th frame on (12 frames to be seen
+    in, 3 more to be steady) and only where they are; a realistic clip with three of them is
+    placed, masked or not, with every frame within the product's 10 px of the truth.
+
+    What the mask does to the error is not claimed: on a CPU without AMX it halved this clip's
+    error (1.05 -> 0.52 px, 0.43 without reflexes), on one with AMX it raised it in both
+    precisions (float32 1.11 -> 1.26 px; bfloat16 0.54 -> 0.84), and over four clips and two
+    precisions there it was lower in one of seven runs (docs/evaluation.md, lens reflexes)."""
     base = SynthParams.realistic(n_frames=40, seed=5, perspective=0.0)
-    errors = {}
     for reflexes, mask in ((0, True), (3, True), (3, False)):
         params = SynthParams(**{**base.__dict__, "lens_reflexes": reflexes})
         frames, truth = (list(x) for x in zip(*render_frames(fundus, params), strict=True))
         config = with_overrides(Config(), preprocess={"reflex_mask": mask})
         report = _run(config, frames).report
         e = errors_to_first(report["frames"], truth, params.size)
-        assert np.isfinite(e).all(), (reflexes, mask)
-        errors[reflexes, mask] = e.mean()
-        # masked from the 15th frame on (12 to be seen in, 3 more to be steady), and reported
+        assert e.max() < 10.0, (reflexes, mask, e.max())  # every frame placed, within 10 px
         masked = report["summary"]["reflex_frames"]
         assert masked == (26 if reflexes and mask else 0), (reflexes, mask, masked)
         assert masked == sum(f["reflexes"] for f in report["frames"])
-    assert errors[3, True] < 1.4 * errors[0, True], errors
-    assert errors[3, False] > 1.6 * errors[3, True], errors
