@@ -324,3 +324,13 @@ def test_relative_links_and_pictures_resolve():
     assert problems == []
     pictures = sorted((REPO / "docs" / "img").glob("*.jpg"))
     assert pictures and all(p.stat().st_size < 200_000 for p in pictures)
+
+
+def test_ci_runs_the_readme_test_command_and_it_runs_every_test():
+    """`.ci/run` runs the README's test command, word for word, and that command runs the
+    tests marked slow too (the plain `pytest` of the fast run leaves them out)."""
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    commands = [line for line in readme.splitlines() if "pip install -q -e '.[test]'" in line]
+    assert len(commands) == 1, commands
+    assert commands[0] in (REPO / ".ci" / "run").read_text(encoding="utf-8")
+    assert '-m "slow or not slow"' in commands[0]
