@@ -26,13 +26,15 @@ import math
 import os
 import re
 import signal
+import socket
 import sys
+import tempfile
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import ExitStack, contextmanager, suppress
+from contextlib import AbstractContextManager, ExitStack, contextmanager, suppress
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -82,6 +84,17 @@ THREAD_ENV = (
 )
 RAY_HINT = "the ray engine needs Ray: pip install 'retina-mosaic[ray]'"
 SUMMARY_EVERY_S = 5.0  # summary files rewritten at most this often while the batch runs
+RAY_TIMEOUT_S = 60.0  # joining a Ray cluster gives up after this long (--ray-timeout)
+#: Ray's waits in one attempt to reach a cluster, read when `ray` is imported: connecting,
+#: twice (the GCS, its pubsub), 5 s each by default, then the cluster id, 30 s; 20 attempts,
+#: ~14 minutes. Joining a cluster, each is shortened to RAY_ATTEMPT_WAIT_S so that attempts
+#: fit the timeout and SIGTERM (handled between Ray's calls) ends the wait within seconds.
+RAY_CONNECT_WAIT, RAY_CLUSTER_ID_WAIT = (
+    "RAY_gcs_rpc_server_connect_timeout_s",
+    "RAY_py_gcs_connect_timeout_s",
+)
+RAY_ATTEMPT_WAIT_S = 2
+RAY_ATTEMPTS = "RAY_gcs_server_port_wait_time_s"  # how many attempts (read by ray.init)
 
 
 @dataclass(frozen=True)
@@ -464,10 +477,10 @@ def available_cores() -> int:
 
 
 @contextmanager
-def _thread_env(threads: int) -> Iterator[None]:
-    """The thread-pool variables for processes started meanwhile (they are read at import)."""
-    saved = {name: os.environ.get(name) for name in THREAD_ENV}
-    os.environ.update({name: str(threads) for name in THREAD_ENV})
+def _environ(values: dict[str, str]) -> Iterator[None]:
+    """`values` in the environment for the duration, then the variables as they were."""
+    saved = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
     try:
         yield
     finally:
@@ -476,6 +489,11 @@ def _thread_env(threads: int) -> Iterator[None]:
                 os.environ.pop(name, None)
             else:
                 os.environ[name] = value
+
+
+def _thread_env(threads: int) -> AbstractContextManager[None]:
+    """The thread-pool variables for processes started meanwhile (they are read at import)."""
+    return _environ({name: str(threads) for name in THREAD_ENV})
 
 
 def run_local(
@@ -545,8 +563,15 @@ def run_local(
             pool.shutdown(wait=True, cancel_futures=True)
 
 
-def import_ray() -> Any:
-    """The `ray` module, or a `MosaicError` saying how to install it."""
+def import_ray(join_timeout_s: float | None = None) -> Any:
+    """The `ray` module, or a `MosaicError` saying how to install it. With `join_timeout_s`
+    (a cluster is to be joined) and `ray` not imported yet, Ray's waits in an attempt to reach
+    it are set to RAY_ATTEMPT_WAIT_S (a quarter of the timeout when that is shorter) first;
+    the variables stay set, for `join_ray` to count attempts (one the user set is kept)."""
+    if join_timeout_s is not None and "ray" not in sys.modules:
+        wait_s = str(max(1, min(RAY_ATTEMPT_WAIT_S, int(join_timeout_s // 4))))
+        os.environ.setdefault(RAY_CONNECT_WAIT, wait_s)
+        os.environ.setdefault(RAY_CLUSTER_ID_WAIT, wait_s)
     try:
         import ray
     except ImportError:
@@ -554,7 +579,99 @@ def import_ray() -> Any:
     return ray
 
 
+def ray_cluster(address: str | None) -> str | None:
+    """The cluster ray.init is to join: `address`, else $RAY_ADDRESS ('auto': the one `ray
+    start` started on this machine); None: a new local Ray."""
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    return None if address in (None, "local") else address
+
+
+def reach_ray(address: str, timeout_s: float) -> None:
+    """A `MosaicError`, within `timeout_s`, when nothing answers at a HOST:PORT (or
+    ray://HOST:PORT) cluster address: a refused port at once, an unreachable host on time."""
+    host, colon, port = address.split("://", 1)[-1].rpartition(":")
+    if not colon or not port.isdigit():
+        return  # not a form to probe: left to ray.init
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except TimeoutError:
+        raise MosaicError(
+            f"cannot reach the Ray cluster at {address}: no answer in {timeout_s:g} s "
+            "(--ray-timeout)"
+        ) from None
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise MosaicError(f"cannot reach the Ray cluster at {address}: {reason}") from None
+
+
+@contextmanager
+def _stderr_into(held: Any) -> Iterator[None]:
+    """The process's stderr (file descriptor 2: Ray's C++ writes there too) into the file
+    `held` for the duration."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    os.dup2(held.fileno(), 2)
+    try:
+        yield
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def join_ray(ray: Any, address: str, timeout_s: float, **options: Any) -> None:
+    """`ray.init(address, **options)` that gives up in about `timeout_s` with one line (a
+    `MosaicError`) where Ray would try a wrong address for minutes: the port is probed first,
+    then Ray's attempts (each a few seconds, see `import_ray`) are as many as fit. Ray's line
+    per failed attempt goes to the log (-v); what a good start prints is shown as before."""
+    started = time.monotonic()
+    reach_ray(address, timeout_s)
+    left_s = timeout_s - (time.monotonic() - started)
+    connect_s = float(os.environ.get(RAY_CONNECT_WAIT, 5))
+    attempt_s = 2 * connect_s + float(os.environ.get(RAY_CLUSTER_ID_WAIT, 30)) + 1  # 1 s pause
+    attempts = {RAY_ATTEMPTS: str(max(1, int(left_s // attempt_s)))}
+    with tempfile.TemporaryFile() as held:
+        try:
+            with _stderr_into(held), _environ({} if RAY_ATTEMPTS in os.environ else attempts):
+                ray.init(address=address, **options)
+        except (OSError, ValueError, RuntimeError) as exc:
+            held.seek(0)
+            log.info("ray.init(%r): %s", address, held.read().decode(errors="replace"))
+            tried = f"tried {time.monotonic() - started:.0f} s, --ray-timeout {timeout_s:g}"
+            message = f"cannot join the Ray cluster at {address} ({tried}): {exc}"
+            raise MosaicError(message.splitlines()[0]) from exc
+        held.seek(0)
+        sys.stderr.write(held.read().decode(errors="replace"))
+
+
+@contextmanager
+def ray_session(address: str | None, timeout_s: float = RAY_TIMEOUT_S) -> Iterator[Any]:
+    """The `ray` module, initialised: the Ray this process has already started, the cluster
+    at `address` (or $RAY_ADDRESS; given up after `timeout_s` when it cannot be reached), or
+    a new local Ray (Ray has its daemons and workers die with this process on Linux, its
+    agents a minute later). A Ray started here is shut down on exit."""
+    cluster = ray_cluster(address)
+    ray = import_ray(timeout_s if cluster is not None else None)
+    if ray.is_initialized():
+        yield ray
+        return
+    options = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.WARNING}
+    if cluster is not None:
+        join_ray(ray, cluster, timeout_s, **options)
+    else:
+        try:  # not ray.init's default, which joins the last `ray start`, even a dead one
+            ray.init(address="local", **options)
+        except (ConnectionError, ValueError, RuntimeError) as exc:
+            message = f"cannot start a local Ray: {exc}"
+            raise MosaicError(message.splitlines()[0]) from exc
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
 def run_ray(
+    ray: Any,
     tasks: Iterable[VideoTask],
     config: Config,
     out: Path,
@@ -562,48 +679,29 @@ def run_ray(
     cpus_per_video: int,
     done: Done,
     running: Running = lambda n: None,
-    address: str | None = None,
 ) -> None:
-    """One Ray task per video (`num_cpus` each, retried on worker loss) on the cluster at
-    `address`, on the Ray this process has already started, or on a new local one. Tasks write
-    their outputs to OUT_DIR: on a cluster it must be storage every node sees at the same path
-    (as the inputs)."""
-    ray = import_ray()
-    started_here = not ray.is_initialized()
-    if started_here:
-        try:
-            ray.init(
-                address=address,
-                include_dashboard=False,
-                log_to_driver=False,
-                logging_level=logging.WARNING,
-            )
-        except (ConnectionError, ValueError, RuntimeError) as exc:
-            where = address or "a local Ray"
-            raise MosaicError(f"cannot start or reach {where}: {exc}".splitlines()[0]) from exc
+    """One Ray task per video (`num_cpus` each, retried on worker loss) on an initialised
+    `ray` (`ray_session`). Tasks write their outputs to OUT_DIR: on a cluster it must be
+    storage every node sees at the same path (as the inputs)."""
+    remote = ray.remote(num_cpus=cpus_per_video, max_retries=2)(_ray_task)
+    slots = max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_video))
+    pending = {remote.remote(task, config, out, rerun, cpus_per_video): task for task in tasks}
     try:
-        remote = ray.remote(num_cpus=cpus_per_video, max_retries=2)(_ray_task)
-        slots = max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_video))
-        pending = {remote.remote(task, config, out, rerun, cpus_per_video): task for task in tasks}
-        try:
-            while pending:
-                running(min(len(pending), slots))
-                ready, _ = ray.wait(list(pending), num_returns=1)
-                for ref in ready:
-                    task = pending.pop(ref)
-                    try:
-                        row = ray.get(ref)
-                    except ray.exceptions.RayError as exc:
-                        reason = f"ray: {type(exc).__name__}: {exc}".splitlines()[0]
-                        row = row_of(task, out, None, FAILED, reason)
-                    done(task, row)
-        except KeyboardInterrupt:
-            for ref in pending:
-                ray.cancel(ref)
-            raise
-    finally:
-        if started_here:
-            ray.shutdown()
+        while pending:
+            running(min(len(pending), slots))
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                task = pending.pop(ref)
+                try:
+                    row = ray.get(ref)
+                except ray.exceptions.RayError as exc:
+                    reason = f"ray: {type(exc).__name__}: {exc}".splitlines()[0]
+                    row = row_of(task, out, None, FAILED, reason)
+                done(task, row)
+    except KeyboardInterrupt:
+        for ref in pending:
+            ray.cancel(ref)
+        raise
 
 
 # --------------------------------------------------------------------------------------------
@@ -629,6 +727,7 @@ def run_batch(
     workers: int | None = None,
     engine: str = "local",
     ray_address: str | None = None,
+    ray_timeout_s: float = RAY_TIMEOUT_S,
     cpus_per_video: int | None = None,
     resume: bool = True,
     pattern: str | None = None,
@@ -644,8 +743,10 @@ def run_batch(
         raise InputError(f"unknown engine {engine!r} (choices: {', '.join(ENGINES)})")
     if rerun not in ("off", "save"):
         raise InputError(f"--rerun for a batch is off or save, not {rerun!r}")
-    if engine == "ray":
-        import_ray()  # the install hint before anything else
+    if not ray_timeout_s > 0:
+        raise InputError(f"--ray-timeout must be above 0 s, got {ray_timeout_s:g}")
+    if engine == "ray":  # the install hint before anything else
+        import_ray(ray_timeout_s if ray_cluster(ray_address) is not None else None)
     out = Path(out_dir).expanduser()
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -686,9 +787,7 @@ def run_batch(
             write_summary(out, ordered, meta)
             state["written"] = time.monotonic()
 
-    bar = tqdm(
-        total=len(todo), unit="video", desc="batch", disable=not progress, dynamic_ncols=True
-    )
+    bar_options = dict(total=len(todo), unit="video", desc="batch", dynamic_ncols=True)
     counts = {"done": 0, "failed": 0, "running": 0}
 
     def postfix() -> None:
@@ -710,15 +809,18 @@ def run_batch(
     interrupted = False
     write(final=True)
     try:
-        if engine == "local":
-            run_local(todo, config, out, rerun, workers, threads, on_done, on_running)
-        else:
-            cpus = cpus_per_video or 1
-            run_ray(todo, config, out, rerun, cpus, on_done, on_running, ray_address)
+        with ExitStack() as stack:  # Ray up before the bar shows: a failure to reach it is one line
+            ray = None
+            if engine == "ray":
+                ray = stack.enter_context(ray_session(ray_address, ray_timeout_s))
+            bar = stack.enter_context(tqdm(disable=not progress, **bar_options))
+            if engine == "local":
+                run_local(todo, config, out, rerun, workers, threads, on_done, on_running)
+            else:
+                run_ray(ray, todo, config, out, rerun, cpus_per_video or 1, on_done, on_running)
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        bar.close()
         meta["finished"] = datetime.now(UTC).isoformat(timespec="seconds")
         write(final=True)
     ordered = [rows.get(t.id) or row_of(t, out, None, NOT_RUN) for t in tasks]

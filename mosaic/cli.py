@@ -391,6 +391,10 @@ def batch(
         str | None,
         typer.Option(help="ray: the cluster to join (default: start a local Ray)."),
     ] = None,
+    ray_timeout: Annotated[
+        float,
+        typer.Option(min=1.0, help="ray: give up reaching --ray-address after this many seconds."),
+    ] = 60.0,
     cpus_per_video: Annotated[
         int | None,
         typer.Option(
@@ -430,6 +434,7 @@ def batch(
                 workers=workers,
                 engine=engine,
                 ray_address=ray_address,
+                ray_timeout_s=ray_timeout,
                 cpus_per_video=cpus_per_video,
                 resume=resume,
                 pattern=pattern,

@@ -8,6 +8,7 @@ import csv
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -399,6 +400,60 @@ def test_workers_die_with_a_killed_batch(long_videos, tmp_path):
         _wait_until(lambda: not any(map(_alive, workers)), 10, f"the workers {workers} to die")
     finally:
         _stop(batch, workers)
+
+
+def _on_ray_at(address: str, videos: Path, out: Path, *options: str) -> list[str]:
+    """The arguments of `mosaic batch` joining the Ray cluster at `address`."""
+    return [str(videos), "-o", str(out), "--engine", "ray", "--ray-address", address, *options]
+
+
+@pytest.mark.parametrize("listening", [False, True], ids=["refused", "silent"])
+def test_an_unreachable_ray_cluster_is_one_line_within_the_timeout(archive, tmp_path, listening):
+    pytest.importorskip("ray")
+    videos, _ = archive
+    with socket.socket() as port:
+        port.bind(("0.0.0.0", 0))  # all interfaces: Ray connects to this host's address
+        if listening:
+            port.listen()  # connections are accepted (by the kernel), nothing ever answers
+        address = f"127.0.0.1:{port.getsockname()[1]}"
+        command = [
+            str(MOSAIC),
+            "batch",
+            *_on_ray_at(address, videos, tmp_path, "--ray-timeout", "5"),
+        ]
+        started = time.monotonic()
+        result = subprocess.run(command, capture_output=True, text=True, timeout=60)
+        elapsed_s = time.monotonic() - started
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert address in lines[0]
+    assert elapsed_s < 30  # 5 s, and the start (Ray alone tries for about 14 minutes)
+
+
+@pytest.mark.slow  # a time bound
+def test_sigterm_ends_the_wait_for_a_ray_cluster_within_seconds(archive, tmp_path):
+    pytest.importorskip("ray")
+    videos, _ = archive
+    with socket.socket() as port:
+        port.bind(("0.0.0.0", 0))
+        port.listen()
+        port.settimeout(60)
+        address = f"127.0.0.1:{port.getsockname()[1]}"
+        batch = _start(_on_ray_at(address, videos, tmp_path / "out"), tmp_path)
+        try:
+            port.accept()[0].close()  # the probe, then Ray's attempts
+            port.accept()[0].close()
+            time.sleep(0.5)
+            batch.terminate()
+            started = time.monotonic()
+            batch.wait(timeout=30)
+            elapsed_s = time.monotonic() - started
+        finally:
+            _stop(batch, set())
+    assert batch.returncode != 0
+    assert elapsed_s < 10  # each of Ray's waits is 2 s (30 s by default)
+    assert "Traceback" not in (tmp_path / "stderr.txt").read_text()
 
 
 def test_ids_and_page_escape_odd_names():
