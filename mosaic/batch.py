@@ -84,6 +84,7 @@ THREAD_ENV = (
 )
 RAY_HINT = "the ray engine needs Ray: pip install 'retina-mosaic[ray]'"
 SUMMARY_EVERY_S = 5.0  # summary files rewritten at most this often while the batch runs
+INTERRUPT_WAIT_S = 120.0  # after Ctrl-C, how long the running videos are waited for
 RAY_TIMEOUT_S = 60.0  # joining a Ray cluster gives up after this long (--ray-timeout)
 #: Ray's waits in one attempt to reach a cluster, read when `ray` is imported: connecting,
 #: twice (the GCS, its pubsub), 5 s each by default, then the cluster id, 30 s; 20 attempts,
@@ -557,7 +558,7 @@ def run_local(
         except KeyboardInterrupt:
             for future, task in active.items():
                 with suppress(BrokenProcessPool, TimeoutError, CancelledError):
-                    done(task, future.result(timeout=120))
+                    done(task, future.result(timeout=INTERRUPT_WAIT_S))
             raise
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
@@ -682,7 +683,9 @@ def run_ray(
 ) -> None:
     """One Ray task per video (`num_cpus` each, retried on worker loss) on an initialised
     `ray` (`ray_session`). Tasks write their outputs to OUT_DIR: on a cluster it must be
-    storage every node sees at the same path (as the inputs)."""
+    storage every node sees at the same path (as the inputs). After Ctrl-C the running tasks
+    are cancelled (each gets KeyboardInterrupt and writes what it has, as in a pool worker)
+    and their rows waited for, then KeyboardInterrupt is raised."""
     remote = ray.remote(num_cpus=cpus_per_video, max_retries=2)(_ray_task)
     slots = max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_video))
     pending = {remote.remote(task, config, out, rerun, cpus_per_video): task for task in tasks}
@@ -699,9 +702,24 @@ def run_ray(
                     row = row_of(task, out, None, FAILED, reason)
                 done(task, row)
     except KeyboardInterrupt:
-        for ref in pending:
-            ray.cancel(ref)
+        _cancel_ray(ray, pending, done)
         raise
+
+
+def _cancel_ray(ray: Any, pending: dict[Any, VideoTask], done: Done) -> None:
+    """Cancel the tasks: a queued one is dropped (its video stays 'not run'), a running one
+    gets KeyboardInterrupt and returns its 'interrupted' row, waited for here."""
+    for ref in pending:
+        ray.cancel(ref)
+    if not pending:
+        return
+    ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=INTERRUPT_WAIT_S)
+    for ref in ready:
+        try:
+            row = ray.get(ref)
+        except ray.exceptions.RayError:  # cancelled before it started, or lost
+            continue
+        done(pending[ref], row)
 
 
 # --------------------------------------------------------------------------------------------

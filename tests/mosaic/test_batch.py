@@ -24,6 +24,8 @@ from typer.testing import CliRunner
 
 from mosaic.batch import (
     FAILED,
+    INTERRUPTED,
+    NOT_RUN,
     OK,
     VideoTask,
     find_tasks,
@@ -400,6 +402,35 @@ def test_workers_die_with_a_killed_batch(long_videos, tmp_path):
         _wait_until(lambda: not any(map(_alive, workers)), 10, f"the workers {workers} to die")
     finally:
         _stop(batch, workers)
+
+
+@pytest.mark.slow  # starts a local Ray
+def test_ctrl_c_under_ray_keeps_the_running_videos_partial_outputs(long_videos, tmp_path):
+    pytest.importorskip("ray")
+    videos, config = long_videos
+    out = tmp_path / "out"
+    batch = _start([videos, "-o", out, "-c", config, "--engine", "ray"], tmp_path)
+    try:
+        _wait_until(lambda: _opened(out, "v0"), 120, "a Ray task to open v0")
+        with suppress(AssertionError):  # v1 too, unless Ray has one CPU (then it is queued)
+            _wait_until(lambda: _opened(out, "v1"), 5, "v1")
+        time.sleep(1.0)  # a few frames in
+        os.killpg(batch.pid, signal.SIGINT)  # Ctrl-C: the terminal signals the whole job
+        assert batch.wait(timeout=60) == 130
+    finally:
+        _stop(batch, set())
+    stderr = (tmp_path / "stderr.txt").read_text()
+    assert "Traceback" not in stderr and "interrupted v0" in stderr, stderr
+    rows = _summary(out)
+    for video_id in ("v0", "v1"):
+        if not _opened(out, video_id):  # queued: dropped
+            assert rows[video_id]["status"] == NOT_RUN
+            continue
+        assert rows[video_id]["status"] == INTERRUPTED, rows[video_id]
+        summary = json.loads((out / video_id / "report.json").read_text())["summary"]
+        assert summary["interrupted"] is True and summary["complete"] is False
+        assert 0 < summary["frames_read"] < 150
+        assert cv2.imread(str(out / video_id / "mosaic.png")) is not None
 
 
 def _on_ray_at(address: str, videos: Path, out: Path, *options: str) -> list[str]:
