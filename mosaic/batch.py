@@ -630,7 +630,8 @@ def join_ray(ray: Any, address: str, timeout_s: float, **options: Any) -> None:
     left_s = timeout_s - (time.monotonic() - started)
     connect_s = float(os.environ.get(RAY_CONNECT_WAIT, 5))
     attempt_s = 2 * connect_s + float(os.environ.get(RAY_CLUSTER_ID_WAIT, 30)) + 1  # 1 s pause
-    attempts = {RAY_ATTEMPTS: str(max(1, int(left_s // attempt_s)))}
+    # the attempts that fit, less one: the command's start took seconds of the user's wait too
+    attempts = {RAY_ATTEMPTS: str(max(1, int(left_s // attempt_s) - 1))}
     with tempfile.TemporaryFile() as held:
         try:
             with _stderr_into(held), _environ({} if RAY_ATTEMPTS in os.environ else attempts):
