@@ -283,6 +283,7 @@ def test_register_describes_photographs_at_the_photo_descriptor_size(fundus, tmp
     assert outputs["photo"]["n_matches"] != outputs["default"]["n_matches"]
 
 
+@pytest.mark.both_precisions
 def test_register_curved_pair_prints_the_quadratic_and_warps(tmp_path):
     from mosaic.curved import curved_pair
     from mosaic.registration import apply_quadratic
@@ -424,6 +425,7 @@ def test_version_and_the_help_of_every_verbose_option():
         assert "-v" in verbose.opts and verbose.help, name
 
 
+@pytest.mark.both_precisions
 def test_build_of_the_shipped_sample_matches_its_ground_truth(tmp_path):
     """`mosaic build samples/sample.mp4` (the README's first command, default settings and
     shipped weights) places every frame within a few pixels of `samples/sample.gt.json`

@@ -568,6 +568,7 @@ def tiny_clip(tmp_path_factory) -> Path:
     )  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # numpy's overflow: a range too wide
 def test_every_value_a_config_accepts_runs(tiny_clip, tmp_path):
     """No value inside a key's range ends in an exception or a numpy warning: the ranges are

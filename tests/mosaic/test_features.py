@@ -145,6 +145,7 @@ def test_glampoints_extra_scale_adds_coarse_points_described_larger(fundus):
     assert np.median(d) < 3.0, np.median(d)
 
 
+@pytest.mark.both_precisions
 def test_glampoints_extra_scale_registers_a_zoomed_pair(fundus):
     """Views 1.6x apart in magnification: the coarse points carry the registration."""
     H_b_to_a = similarity(3.0, 1.6, 10.0, -5.0, center=(240, 160))

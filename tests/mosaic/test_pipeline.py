@@ -183,6 +183,7 @@ def _build_segments(images: list[np.ndarray], reread) -> MosaicResult:
     return builder.finish(reread=reread)
 
 
+@pytest.mark.slow
 def test_a_new_segment_the_camera_comes_back_from_joins_the_first():
     """`_out_and_back`: the frames after the blink start a second segment; the frame that
     registers to the first segment again also registers to the second, which ties them:
@@ -465,6 +466,7 @@ def test_burned_in_overlay_is_masked_and_registration_follows_the_retina(tmp_pat
     assert mean_error[True] < 1.0 and mean_error[True] < 0.85 * mean_error[False], mean_error
 
 
+@pytest.mark.slow
 def test_burned_in_overlay_is_left_out_of_the_rendered_mosaic(tmp_path):
     """Keyframes re-render from the video with the whole video's overlay estimate applied to
     every frame: the mosaic comes out close to the one of the same video without overlay."""
@@ -508,6 +510,7 @@ def _upscaled(folder: Path, gt: list[np.ndarray], out: Path, k: int = 2):
     return out, [H @ H_big_to_small for H in gt]
 
 
+@pytest.mark.slow
 def test_large_frames_register_at_the_working_size_and_compose_at_full_size(video, tmp_path):
     """A 2x camera registered at half size gives what the 1x camera gives, in its own pixels."""
     folder, gt = video
@@ -751,6 +754,7 @@ def test_an_angiogram_is_registered_to_a_colour_photograph_once_inverted(
     assert error.mean() < 1.0, error
 
 
+@pytest.mark.slow
 def test_an_interlaced_video_is_registered_on_its_first_fields(video, tmp_path):
     """An interlaced camera's video (odd rows half a frame interval later): with
     `deinterlace` each frame is its first field and the poses follow the truth (the first

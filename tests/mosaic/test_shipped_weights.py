@@ -74,6 +74,7 @@ def test_glampoints_registers_as_many_pairs_as_sift_within_the_noise(tmp_path):
     assert {r["detector"]: r["true_positives"] for r in summary}["glampoints"] > 0
 
 
+@pytest.mark.both_precisions
 def test_shipped_weights_register_a_known_pair_to_a_fraction_of_a_pixel(fundus):
     """The fast suite's check of the shipped weights themselves: a known similarity between
     two 400x300 views of the sample image (measured: 434 inliers, 0.07 px corner error with a

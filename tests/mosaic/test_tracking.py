@@ -56,6 +56,7 @@ def _noise(seed: int) -> np.ndarray:
     return np.random.default_rng(seed).integers(0, 255, (SIZE[1], SIZE[0], 3), dtype=np.uint8)
 
 
+@pytest.mark.slow
 def test_relocalisation_after_unusable_frames_continues_the_same_mosaic(trip):
     frames, truth = trip
     # After the trip, three unusable frames, then the camera is back at the start.
@@ -75,6 +76,7 @@ def test_relocalisation_after_unusable_frames_continues_the_same_mosaic(trip):
     assert np.all(errors[np.isfinite(errors)] < 5.0), errors
 
 
+@pytest.mark.slow
 def test_loop_closure_reduces_drift_at_the_end_of_a_loop(fundus, trip):
     frames, truth = trip
     rng = np.random.default_rng(0)
@@ -122,6 +124,7 @@ def test_loop_closure_reduces_drift_at_the_end_of_a_loop(fundus, trip):
     assert drift_with.mean() < 0.6 * drift_without.mean(), (drift_with, drift_without)
 
 
+@pytest.mark.slow
 def test_refinement_lowers_the_graph_residual_and_the_error_to_the_truth(fundus):
     # The trip out and back with the nuisances of real video (noise, blur, gain): the links
     # carry errors for the graph to reconcile. Keypoint links (with tracked inliers the
@@ -143,6 +146,7 @@ def test_refinement_lowers_the_graph_residual_and_the_error_to_the_truth(fundus)
     assert refined.mean() < unrefined.mean() and refined.max() < unrefined.max()
 
 
+@pytest.mark.slow
 def test_tilted_views_are_placed_better_by_the_tilted_pose_graph(fundus):
     # Views with a strong tilt (a perspective in frame coordinates that drifts along the path,
     # `SynthParams.perspective`): similarity links are biased and their biases add up. The
@@ -199,6 +203,7 @@ def _pan_across_a_featureless_gap(fundus, n=45, step=4.0):
     return frames, truth
 
 
+@pytest.mark.slow
 def test_keyframe_is_promoted_before_registration_fails_on_a_slow_pan(fundus):
     frames, truth = _pan_across_a_featureless_gap(fundus)
     size = (320, 240)
@@ -258,6 +263,8 @@ class _NoTimer:
         return fn(*args)
 
 
+@pytest.mark.both_precisions
+@pytest.mark.slow
 def test_bridging_links_tie_keyframes_without_adding_drift_on_realistic_video(fundus):
     """Frames right after a promotion also register to the keyframes before it: consecutive
     keyframes are tied by several links, not one. Those links must hold against the truth:
@@ -336,6 +343,7 @@ def test_a_keyframe_registration_the_predecessor_contradicts_does_not_place_the_
     assert not tracker._contradicted(wrong, None, shape)
 
 
+@pytest.mark.both_precisions
 def test_tracked_inliers_register_blurred_realistic_pairs_more_precisely(fundus):
     """Re-localising a registration's inliers by tracking (`[registration] track_window_px`)
     and refitting places realistic frame pairs (magnified, noisy, compressed-looking, with
@@ -393,6 +401,8 @@ def test_perspective_is_decided_per_video_once_enough_registrations_agree():
     assert p.needed(1.0, "similarity")
 
 
+@pytest.mark.both_precisions
+@pytest.mark.slow
 def test_tracked_inliers_lower_the_error_of_a_realistic_video_without_perspective(fundus):
     """A realistic clip without perspective: tracked links, refitted as pure similarities (the
     video shows no perspective, so they are seldom relaxed), place its frames closer to the
