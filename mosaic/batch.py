@@ -29,6 +29,7 @@ import signal
 import socket
 import sys
 import tempfile
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -658,6 +659,7 @@ def ray_session(address: str | None, timeout_s: float = RAY_TIMEOUT_S) -> Iterat
         yield ray
         return
     options = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.WARNING}
+    on_terminate = signal.getsignal(signal.SIGTERM)
     if cluster is not None:
         join_ray(ray, cluster, timeout_s, **options)
     else:
@@ -666,6 +668,10 @@ def ray_session(address: str | None, timeout_s: float = RAY_TIMEOUT_S) -> Iterat
         except (ConnectionError, ValueError, RuntimeError) as exc:
             message = f"cannot start a local Ray: {exc}"
             raise MosaicError(message.splitlines()[0]) from exc
+    if callable(on_terminate) and threading.current_thread() is threading.main_thread():
+        # ray.init puts its own SIGTERM handler (exit at once) in place of the caller's, which
+        # takes SIGTERM as Ctrl-C so that the running videos write what they have
+        signal.signal(signal.SIGTERM, on_terminate)
     try:
         yield ray
     finally:

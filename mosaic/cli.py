@@ -15,12 +15,13 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
     import csv
     import json
     import logging
+    import os
     import re
     import signal
     import threading
     import time
     from collections.abc import Iterator
-    from contextlib import contextmanager
+    from contextlib import contextmanager, suppress
     from importlib.metadata import PackageNotFoundError, version
     from pathlib import Path
     from typing import Annotated, Any
@@ -107,14 +108,21 @@ def _user_errors() -> Iterator[None]:
 
 
 @contextmanager
-def _terminate_as_interrupt() -> Iterator[None]:
+def _terminate_as_interrupt(children: bool = False) -> Iterator[None]:
     """SIGTERM (`kill`, a job scheduler, `docker stop`) handled as Ctrl-C: the run stops where
-    it is and writes what it has, instead of dying with nothing written."""
+    it is and writes what it has, instead of dying with nothing written. `children`: the
+    worker processes get Ctrl-C too (a terminal sends it to them all; `kill` to one)."""
     if threading.current_thread() is not threading.main_thread():
         yield  # signal handlers can only be set from the main thread
         return
 
     def interrupt(signum: int, frame: object) -> None:
+        if children:
+            import multiprocessing
+
+            for child in multiprocessing.active_children():
+                with suppress(OSError):  # gone meanwhile
+                    os.kill(child.pid, signal.SIGINT)
         raise KeyboardInterrupt
 
     previous = signal.signal(signal.SIGTERM, interrupt)
@@ -425,7 +433,7 @@ def batch(
 
     _setup_logging(verbose)
     try:
-        with _user_errors():
+        with _user_errors(), _terminate_as_interrupt(children=True):
             config = load_config(config_path)
             result = run_batch(
                 source,

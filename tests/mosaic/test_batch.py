@@ -404,8 +404,36 @@ def test_workers_die_with_a_killed_batch(long_videos, tmp_path):
         _stop(batch, workers)
 
 
+@pytest.mark.skipif(not LINUX, reason="reads /proc")
+def test_sigterm_to_the_batch_alone_keeps_the_running_videos_partial_outputs(long_videos, tmp_path):
+    """`kill PID` (a scheduler, `docker stop`) signals the batch, not its workers: it is taken
+    as Ctrl-C and handed on to them, so each running video writes what it has, as after
+    Ctrl-C (before: the workers built their videos to the end, or died with nothing)."""
+    videos, config = long_videos
+    out = tmp_path / "out"
+    batch = _start([videos, "-o", out, "-c", config, "--workers", "2"], tmp_path)
+    try:
+        _wait_until(lambda: _opened(out, "v0") and _opened(out, "v1"), 120, "both videos")
+        time.sleep(1.0)  # a few frames in
+        batch.terminate()  # SIGTERM to the batch process only
+        assert batch.wait(timeout=60) == 130
+    finally:
+        _stop(batch, set())
+    stderr = (tmp_path / "stderr.txt").read_text()
+    assert "Traceback" not in stderr, stderr
+    rows = _summary(out)
+    for video_id in ("v0", "v1"):
+        assert rows[video_id]["status"] == INTERRUPTED, rows[video_id]
+        summary = json.loads((out / video_id / "report.json").read_text())["summary"]
+        assert summary["interrupted"] is True and 0 < summary["frames_read"] < 150
+        assert cv2.imread(str(out / video_id / "mosaic.png")) is not None
+
+
 @pytest.mark.slow  # starts a local Ray
-def test_ctrl_c_under_ray_keeps_the_running_videos_partial_outputs(long_videos, tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_under_ray_keeps_the_running_videos_partial_outputs(long_videos, tmp_path, signum):
+    """Ctrl-C (the terminal signals the whole job) or SIGTERM to the batch alone (before: Ray's
+    own handler ended it at once, nothing written)."""
     pytest.importorskip("ray")
     videos, config = long_videos
     out = tmp_path / "out"
@@ -415,7 +443,10 @@ def test_ctrl_c_under_ray_keeps_the_running_videos_partial_outputs(long_videos, 
         with suppress(AssertionError):  # v1 too, unless Ray has one CPU (then it is queued)
             _wait_until(lambda: _opened(out, "v1"), 5, "v1")
         time.sleep(1.0)  # a few frames in
-        os.killpg(batch.pid, signal.SIGINT)  # Ctrl-C: the terminal signals the whole job
+        if signum == signal.SIGINT:
+            os.killpg(batch.pid, signal.SIGINT)
+        else:
+            batch.terminate()
         assert batch.wait(timeout=60) == 130
     finally:
         _stop(batch, set())
