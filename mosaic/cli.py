@@ -881,6 +881,15 @@ def bench(
     ] = None,
     config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
     rerun: Annotated[bool, typer.Option(help="Also measure the --rerun save overhead.")] = True,
+    whole_build: Annotated[
+        bool,
+        typer.Option(
+            "--build/--no-build",
+            help="Also time the whole `mosaic build` (re-render, written mosaic and report) of a "
+            "realistic synthetic video of FRAMES frames with the first detector, next to its "
+            "streaming rate.",
+        ),
+    ] = True,
     scales: Annotated[
         str,
         typer.Option(help="Comma-separated detection scales to time for the first detector."),
@@ -898,7 +907,14 @@ def bench(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Time the whole pipeline per detector on a synthetic video (ms per stage, frames/s)."""
-    from mosaic.bench import environment, format_table, profile_pipeline, run_bench
+    from mosaic.bench import (
+        environment,
+        format_build_table,
+        format_table,
+        profile_pipeline,
+        run_bench,
+        run_build_bench,
+    )
 
     _setup_logging(verbose)
     with _user_errors():
@@ -933,9 +949,18 @@ def bench(
         )
         if not rows:
             raise MosaicError(f"none of the detectors {', '.join(names)} could run")
+        builds = []
+        if whole_build:
+            typer.echo(f"running {rows[0].detector} (mosaic build) ...", err=True)
+            builds.append(run_build_bench(rows[0].detector, _parse_size(size), frames, config))
         env = environment()
         if as_json:
-            typer.echo(json.dumps({"environment": env, "rows": [r.__dict__ for r in rows]}))
+            whole = [
+                {**r.__dict__, "streaming_fps": r.streaming_fps, "whole_fps": r.whole_fps}
+                for r in builds
+            ]
+            document = {"environment": env, "rows": [r.__dict__ for r in rows], "builds": whole}
+            typer.echo(json.dumps(document))
             return
         typer.echo(format_table(rows))
         notes = [f"{r.name}: {r.notes}" for r in rows if r.notes]
@@ -944,6 +969,12 @@ def bench(
             "x sift = fps ratio; ovl = extraction of the next frame overlapped (default rows: "
             f"as [pipeline] overlap chose). {'; '.join(notes)}"
         )
+        if builds:
+            typer.echo("\n" + format_build_table(builds))
+            typer.echo(
+                "stream = start of the run to the last frame registered; wall = to the mosaic "
+                "and report written (model loaded before); x stream = whole fps / stream fps"
+            )
         typer.echo("environment: " + ", ".join(f"{k}={v}" for k, v in env.items()))
         if profile:
             typer.echo(f"\nprofile of {names[0]} (serial run, {frames} frames):")
