@@ -233,6 +233,8 @@ def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> N
         rows.insert(4, ("looks interlaced", "yes (see [preprocess] deinterlace)"))
     if summary.get("reflex_frames"):  # lens reflexes left out of those frames
         rows.insert(4, ("lens reflexes masked", f"{summary['reflex_frames']} frames"))
+    if summary.get("lens_rim_frames"):  # a handheld lens: what lay outside its rim left out
+        rows.insert(4, ("lens rim masked", f"{summary['lens_rim_frames']} frames"))
     width = max(len(name) for name, _ in rows)
     typer.echo("\n".join(f"{name:<{width}}  {_cell(value)}" for name, value in rows))
     typer.echo(f"mosaic: {output}")

@@ -43,6 +43,8 @@ class PreprocessConfig:
     # place of the frame while the retina moves (their edges would match where the camera was)
     reflex_brightness: int = 50  # grey levels above its surroundings a reflex keeps in every
     # recent frame
+    lens_rim_mask: bool = True  # video through a handheld lens: no keypoints, tracking or
+    # blending outside the lens's rim, a disc that moves about the frame (the face around it)
     max_side_px: int = 800  # larger frames are registered downscaled to this longer side (0: off)
     fov_diameter_px: int = 512  # `mosaic register`: a photograph showing the whole retina is
     # registered with the retina's diameter at this (the detector's training images: 460-640

@@ -36,14 +36,17 @@ from mosaic.io import Frame, Lookahead
 from mosaic.matching import Matches, match_descriptors
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import (
+    Circle,
     Deinterlacer,
     FrameGate,
+    LensRimMask,
     OverlayMask,
     Prepared,
     ReflexMask,
     Spots,
     first_field,
     inverted_as,
+    outside_rim_removed,
     pair_polarities,
     pair_working_scales,
     prepare,
@@ -84,6 +87,8 @@ class FrameRecord:
     gain: float | None = None  # exposure gain the frame was composed with (None: none)
     deinterlaced: bool = False  # replaced by its first field (`[preprocess] deinterlace`)
     reflexes: bool = False  # lens reflexes left out of it (`[preprocess] reflex_mask`)
+    lens_rim: Circle | None = None  # (cx, cy, r) px of a handheld lens's rim, outside which
+    # nothing of it was used (`[preprocess] lens_rim_mask`)
     stage_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -338,6 +343,9 @@ class MosaicBuilder:
         self._overlay = OverlayMask(config.preprocess)
         self._reflexes = ReflexMask(config.preprocess)
         self._reflex_spots: dict[int, Spots] = {}  # frame index -> its reflexes
+        self._rim = LensRimMask(config.preprocess)
+        # frame index -> its lens rim and the margin masked inside it (working px)
+        self._rims: dict[int, tuple[Circle, float]] = {}
         self._fields = Deinterlacer(config.preprocess.deinterlace)
         compose = config.compose
         self._photometry = VideoPhotometry(compose.side_bands, compose.flatfield)
@@ -420,6 +428,10 @@ class MosaicBuilder:
         prepared = timer.run("preprocess", prepare, work, self.config.preprocess)
         gate_reason = self._gate(prepared)  # before overlay masking: sharpness of the whole view
         prepared = timer.run("preprocess", self._overlay, work, prepared)
+        prepared = timer.run("preprocess", self._rim, work, prepared)
+        if self._rim.found is not None:  # kept for the re-render: left out there too
+            self._rims[index] = (self._rim.found, self._rim.margin_px)
+            record.lens_rim = _circle_in_frame(self._rim.found, S)
         prepared = timer.run("preprocess", self._reflexes, work, prepared)
         if self._reflexes.found is not None:  # kept for the re-render: left out there too
             self._reflex_spots[index] = self._reflexes.found
@@ -801,6 +813,9 @@ class MosaicBuilder:
                 # the overlay estimate of the whole video: no overlay pixels from any frame
                 work, _ = self._working_size(image)
                 prepared = self._overlay.apply(prepare(work, mask_config))
+                if index in self._rims:
+                    mask = outside_rim_removed(prepared.mask, *self._rims[index])
+                    prepared = Prepared(prepared.gray, mask)
                 if index in self._reflex_spots:
                     mask = self._reflex_spots[index].removed_from(prepared.mask)
                     prepared = Prepared(prepared.gray, mask)
@@ -865,6 +880,14 @@ class MosaicBuilder:
         return MosaicResult(mosaics, build_report(self, mosaics, interrupted))
 
 
+def _circle_in_frame(circle: Circle, H_frame_to_work: np.ndarray | None) -> Circle:
+    """A circle (cx, cy, r) at the working size in the pixels of the frame as decoded."""
+    if H_frame_to_work is None:
+        return circle
+    s, tx, ty = H_frame_to_work[0, 0], H_frame_to_work[0, 2], H_frame_to_work[1, 2]
+    return (circle[0] - tx) / s, (circle[1] - ty) / s, circle[2] / s
+
+
 def _leading_run(statuses: list[str]) -> int:
     """Registered frames from the first one until the first failure (skipped frames ignored)."""
     count = 0
@@ -922,6 +945,7 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict
         "flagged": record.flagged,
         "deinterlaced": record.deinterlaced,
         "reflexes": record.reflexes,
+        "lens_rim": None if record.lens_rim is None else [round(v, 1) for v in record.lens_rim],
         "gain": None if record.gain is None else round(record.gain, 4),
         "time_ms": round(record.time_ms, 2),
     }
@@ -990,6 +1014,7 @@ def build_report(
         "quality_flagged": sum(r.flagged for r in records if r.status == REGISTERED),
         "deinterlaced": sum(r.deinterlaced for r in records),
         "reflex_frames": sum(r.reflexes for r in records),
+        "lens_rim_frames": sum(r.lens_rim is not None for r in records),
         "field_offset_px": None
         if builder._fields.median_offset_px is None
         else round(builder._fields.median_offset_px, 2),

@@ -571,6 +571,13 @@ class _LensRim:
         return img * inside + self.surround[y0 : y0 + h, x0 : x0 + w] * (1.0 - inside)
 
 
+def lens_rim_truth(params: SynthParams) -> tuple[np.ndarray, float] | None:
+    """Where `lens_rim` puts the lens's rim: its centre in each frame ((n, 2) frame px) and its
+    radius (px); None for a video without it. For checking a rim finder against the truth."""
+    rim = _LensRim.draw(params)
+    return None if rim is None else (rim.centres.copy(), rim.radius)
+
+
 @dataclass(frozen=True)
 class _RealisticNuisances:
     """Per-frame draws of the realistic profile's nuisances (independent stream)."""
@@ -887,6 +894,7 @@ __all__ = [
     "corner_error",
     "estimate_fov_disc",
     "gt_path_for",
+    "lens_rim_truth",
     "load_ground_truth",
     "pick_source",
     "plan_trajectory",
