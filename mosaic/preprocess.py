@@ -870,26 +870,26 @@ def _circle_votes(
     return found
 
 
-def _fit_circle(xy: np.ndarray, radius: float | None = None) -> tuple[Circle, np.ndarray]:
+def _fit_circle(xy: np.ndarray, start: Circle | None = None) -> tuple[Circle, np.ndarray]:
     """Least-squares circle through points (N, 2), refitted without the far ones; the circle
-    and each point's distance to it. With `radius`, only the centre is fitted (Gauss-Newton
-    from the algebraic fit's): a short arc then still places it."""
+    and each point's distance to it. With `start`, only the centre is fitted, from `start`'s
+    (Gauss-Newton), the radius held at its: a short arc then still places it."""
     keep = np.ones(len(xy), bool)
-    circle = (0.0, 0.0, 0.0)
+    circle = start or (0.0, 0.0, 0.0)
     residual = np.zeros(len(xy))
     for _ in range(3):
-        A = np.column_stack([2 * xy[keep], np.ones(int(keep.sum()))])
-        (cx, cy, c), *_ = np.linalg.lstsq(A, (xy[keep] ** 2).sum(1), rcond=None)
-        r = float(np.sqrt(max(c + cx**2 + cy**2, 0.0)))
-        if radius is not None:
-            centre, r = np.array([cx, cy]), radius
+        if start is None:
+            A = np.column_stack([2 * xy[keep], np.ones(int(keep.sum()))])
+            (cx, cy, c), *_ = np.linalg.lstsq(A, (xy[keep] ** 2).sum(1), rcond=None)
+            circle = (float(cx), float(cy), float(np.sqrt(max(c + cx**2 + cy**2, 0.0))))
+        else:
+            centre, r = np.array(start[:2]), start[2]
             for _ in range(5):
                 offset = xy[keep] - centre
                 dist = np.maximum(np.linalg.norm(offset, axis=1, keepdims=True), 1e-9)
-                J, e = -offset / dist, dist[:, 0] - r
-                centre = centre - np.linalg.lstsq(J, e, rcond=None)[0]
-            cx, cy = centre
-        circle = (float(cx), float(cy), float(r))
+                centre = centre - np.linalg.lstsq(-offset / dist, dist[:, 0] - r, rcond=None)[0]
+            circle = (float(centre[0]), float(centre[1]), r)
+        cx, cy, r = circle
         residual = np.abs(np.hypot(xy[:, 0] - cx, xy[:, 1] - cy) - r)
         keep = residual <= max(3 * float(np.median(residual[keep])), 0.75)
         if keep.sum() < 3:
@@ -936,7 +936,7 @@ def _check_rim(
     curve = np.minimum(left - 2 * mid + right, -1e-6)  # a maximum: <= 0
     at = (d[k] + d[k + 1]) / 2 + np.clip(0.25 * (left - right) / curve, -0.25, 0.25)  # parabola
     xy = np.stack([cx + (r + at) * cos[rows, 0], cy + (r + at) * sin[rows, 0]], 1)
-    fitted, residual = _fit_circle(xy.astype(np.float64), r if fixed_radius else None)
+    fitted, residual = _fit_circle(xy.astype(np.float64), circle if fixed_radius else None)
     on = residual <= RIM_ON_CIRCLE
     support = float(on.sum()) / max(n_seen, 1)
     return RimFit(fitted, n_seen / len(theta), support, float(np.median(residual)))
@@ -975,12 +975,12 @@ def find_lens_rim(image: np.ndarray, view: np.ndarray, near: Circle | None = Non
 
     kept = []  # near the last rim, on the weaker evidence
     if near is not None:
-        at = ((near[0] + 0.5) * s - 0.5, (near[1] + 0.5) * s - 0.5, near[2] * s)
-        fit = checked(at)
+        prior = ((near[0] + 0.5) * s - 0.5, (near[1] + 0.5) * s - 0.5, near[2] * s)
+        fit = checked(prior)
         if fit.shows(RIM_FIND) and is_near(fit):
             return fit
         # on weak evidence, the radius is the last rim's (the lens's): a short arc's is loose
-        fit = checked(at, fixed_radius=True)
+        fit = checked(prior, fixed_radius=True)
         kept = [fit] if fit.shows(RIM_KEEP) and is_near(fit) else []
     strength, angle = _rim_gradient(small)
     radii = np.arange(RIM_RADII[0] * size[1], RIM_RADII[1] * size[1] + 1.0)
