@@ -26,31 +26,43 @@ log = logging.getLogger(__name__)
 _EPS = 1e-30  # accumulated weight under which a level's pixel counts as empty
 
 
+def _spread(m: np.ndarray, channels: int) -> np.ndarray:
+    """A single-channel map as `channels` channels (OpenCV's element-wise kernels want equal
+    channels, and run several times faster than numpy's broadcasting on these sizes)."""
+    return m if channels == 1 else cv2.merge([m] * channels)
+
+
 def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """`image` (float32 HxW[xC]) with the pixels where `valid` (bool HxW) is False filled
-    smoothly from the valid ones (push-pull over a Gaussian pyramid); valid pixels unchanged."""
-    mask = valid.astype(np.float32)
-    if mask.all() or not mask.any():
+    smoothly from the valid ones (push-pull over a Gaussian pyramid); valid pixels unchanged.
+
+    At the finest level the mask is 0 / 1: the push is a masked copy and the pull takes each
+    pixel from itself or from the coarser estimate, one masked copy again."""
+    if not valid.any() or valid.all():
         return image
     if image.ndim == 3 and image.shape[2] == 1:  # OpenCV drops a single channel's axis
         return fill_invalid(image[..., 0], valid)[..., None]
-
-    def spread(m: np.ndarray) -> np.ndarray:  # a mask with as many channels as the image
-        return m if image.ndim == 2 else cv2.merge([m] * image.shape[2])
-
-    levels = [(cv2.multiply(image, spread(mask)), mask)]
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    inside = valid.astype(np.uint8)
+    first = np.zeros_like(image)
+    cv2.copyTo(image, inside, dst=first)  # = image x mask
+    levels = [(first, inside.astype(np.float32))]
     # push: pre-multiplied means, down to where every pixel has some valid support
     while levels[-1][1].min() <= 1e-6 and min(levels[-1][1].shape) > 1:
         a, m = levels[-1]
         levels.append((cv2.pyrDown(a), cv2.pyrDown(m)))
+    if len(levels) == 1:  # a side of 1 px: nothing coarser to pull from
+        return first
     a, m = levels[-1]
-    estimate = cv2.divide(a, spread(np.maximum(m, 1e-6)))
+    estimate = cv2.divide(a, _spread(np.maximum(m, 1e-6), channels))
     # pull: each level's valid share m from its own mean, the rest from the coarser estimate
-    for a, m in reversed(levels[:-1]):
+    for a, m in reversed(levels[1:-1]):
         up = cv2.pyrUp(estimate, dstsize=(a.shape[1], a.shape[0]))
-        estimate = a + cv2.multiply(up, spread(1.0 - np.clip(m, 0.0, 1.0)))
-    np.copyto(estimate, image, where=valid if image.ndim == 2 else valid[..., None])
-    return estimate
+        rest = _spread(1.0 - np.clip(m, 0.0, 1.0), channels)
+        estimate = cv2.accumulateProduct(up.reshape(a.shape), rest, a)
+    up = cv2.pyrUp(estimate, dstsize=(image.shape[1], image.shape[0])).reshape(image.shape)
+    cv2.copyTo(image, inside, dst=up)
+    return up
 
 
 class LaplacianBlender:
@@ -120,20 +132,21 @@ class LaplacianBlender:
         valid = box_w > trusted * float(box_w.max())
         if not valid.any():
             return
-        gauss = fill_invalid(box_img, valid)
+        gauss = fill_invalid(box_img if self.channels > 1 else box_img[..., 0], valid)
         weights = box_w
         for k in range(self.levels + 1):
             rows = slice(by0 >> k, by1 >> k)
             cols = slice(bx0 >> k, bx1 >> k)
-            # in place where it can be: a large frame's box is tens of MB a buffer
+            num = self._num[k][rows, cols]
             if k < self.levels:
-                down = cv2.pyrDown(gauss).reshape(-1, gauss.shape[1] // 2, self.channels)
+                down = cv2.pyrDown(gauss)
                 up = cv2.pyrUp(down, dstsize=(gauss.shape[1], gauss.shape[0]))
-                band = np.subtract(gauss, up.reshape(gauss.shape), out=up.reshape(gauss.shape))
+                band = cv2.subtract(gauss, up, dst=up)
             else:
-                band = gauss  # not read again
-            self._num[k][rows, cols] += np.multiply(band, weights[..., None], out=band)
-            self._den[k][rows, cols] += weights
+                band = gauss
+            # OpenCV's accumulators: one pass each, into the views (no temporaries)
+            cv2.accumulateProduct(band, _spread(weights, self.channels), num.reshape(band.shape))
+            cv2.accumulate(weights, self._den[k][rows, cols])
             if k < self.levels:
                 gauss = down
                 weights = cv2.pyrDown(weights)

@@ -54,6 +54,7 @@ from mosaic.photometry import (
     DARK,
     SATURATED,
     FlatFieldEstimator,
+    FrameQuality,
     GainObservations,
     SideBands,
     VideoPhotometry,
@@ -78,6 +79,9 @@ MULTIBAND_LEVELS = 5  # Laplacian levels: seams are smoothed over ~2^5 = 32 px
 # then ~0.55 GB, docs/compose.md) feathers instead (19 bytes a pixel), with a warning
 MULTIBAND_MAX_BYTES = 256 * 2**20
 RENDER_ROWS = 256  # rows of a strip of `Canvas.render`
+# the re-render keeps frames (decoded, with their masks and quality) from its first pass for the
+# second, up to this many bytes; frames past it are read again
+RERENDER_KEEP_BYTES = 256 * 2**20
 # feather / average / multiband: weight x min(1, relative sharpness / knee)^power
 SHARPNESS_KNEE = 0.8  # frames at least this sharp (relative to the others there) count fully
 SHARPNESS_POWER = 4.0  # ... blurrier ones fall off fast: half the knee weighs 1/16
@@ -367,8 +371,12 @@ class Canvas:
         if weights is not None and self._config.blend != "last":
             if weights.shape != (h, w):
                 raise ValueError(f"weights shape {weights.shape} does not match frame {(h, w)}")
-            factor = np.clip(weights, _MIN_FACTOR, _MAX_FACTOR, dtype=np.float32)
-            frame_weights = np.where(frame_weights > 0, frame_weights * factor, frame_weights)
+            factor = np.asarray(weights, np.float32)
+            factor = cv2.max(cv2.min(factor, _MAX_FACTOR), _MIN_FACTOR)
+            # the product inside, the invalid weight kept outside (OpenCV: one pass each)
+            scaled = cv2.multiply(frame_weights, factor)
+            outside = cv2.compare(frame_weights, 0.0, cv2.CMP_LE)
+            frame_weights = cv2.copyTo(frame_weights, outside, dst=scaled)
         cv2.warpPerspective(
             frame_weights,
             M,
@@ -400,8 +408,10 @@ class Canvas:
             if cn > 1:
                 weight_c = self._scratch("weight_c", rh, rw, cn, np.float32)
                 cv2.merge([weight] * cn, dst=weight_c)
-            warped_f = self._scratch("warped_f", rh, rw, cn, np.float32)
-            np.copyto(warped_f, warped)
+            warped_f = warped
+            if warped.dtype != np.float32:
+                warped_f = self._scratch("warped_f", rh, rw, cn, np.float32)
+                np.copyto(warped_f, warped)
             cv2.accumulateProduct(warped_f, weight_c, sum_roi, valid)
             cv2.accumulate(weight, weight_roi, valid)
             if self._blender is not None:
@@ -885,16 +895,21 @@ def render_segments(
     poses: dict[int, dict[int, np.ndarray]],
     photometry: VideoPhotometry | None = None,
     before_add: BeforeAdd | None = None,
+    keep_bytes: int = RERENDER_KEEP_BYTES,
 ) -> dict[int, Rendered]:
     """Render each segment's mosaic from its frames at known poses (`poses[segment][index]` =
     H_frame_to_ref), reading the frames through `frames()` ((index, BGR uint8 image, mask))
-    once, or twice when exposure gains or per-place quality are needed (the first pass keeps
-    only per-cell statistics). `before_add(index, canvas, image, H, mask)` sees each frame
-    just before it is added (e.g. to score it against the mosaic so far)."""
+    once, or, when exposure gains or per-place quality are needed, in two passes (the first
+    keeps only per-cell statistics). The frames of the first pass, with their masks and
+    quality maps, are kept for the second up to `keep_bytes`: a video that fits is read once,
+    a longer one is read again for the frames past it. `before_add(index, canvas, image, H,
+    mask)` sees each frame just before it is added (e.g. to score it against the mosaic so
+    far)."""
     owner = {index: seg for seg, p in poses.items() for index in p}
     photometry = photometry if photometry is not None else VideoPhotometry(False, False)
     need_sharpest = config.sharpness_weighting or config.blend == "best"
     states: dict[int, _SegmentRender] = {}
+    kept: dict[int, tuple[np.ndarray, np.ndarray, FrameQuality | None]] = {}
 
     def state_of(seg: int, shape: tuple[int, int]) -> _SegmentRender:
         if seg not in states:
@@ -913,14 +928,17 @@ def render_segments(
             )
         return states[seg]
 
-    if config.exposure or need_sharpest:  # first pass: statistics only
+    two_passes = config.exposure or need_sharpest
+    if two_passes:  # first pass: statistics only
+        room = keep_bytes
         for index, image, mask in frames():
             if index not in owner:
                 continue
             st = state_of(owner[index], image.shape[:2])
             H = st.poses[index]
-            if need_sharpest:
-                q = _sharpness(config, image, mask)
+            quality = _quality(config, image, mask) if need_sharpest else None
+            if quality is not None:
+                q = _sharpness(config, quality)
                 M = st.quality_grid.from_small(H, image.shape[:2], q.shape[1::-1])
                 box = _warp_box(q, M, st.sharpest.shape)
                 seen = _warp_box((q > 0).astype(np.float32), M, st.sharpest.shape)
@@ -932,6 +950,9 @@ def render_segments(
                     st.sharp_count[cells] += seen[2]
             if config.exposure:
                 _observe_cells(st, index, image, mask, H, photometry)
+            if image.nbytes + mask.nbytes <= room:
+                kept[index] = (image, mask, quality)
+                room -= image.nbytes + mask.nbytes
         for seg, st in states.items():
             if config.exposure:
                 st.gains = st.observations.solve()
@@ -942,9 +963,20 @@ def render_segments(
                         seg, values.min(), values.max(), float(np.median(values)), len(values),
                     )  # fmt: skip
 
-    for index, image, mask in frames():  # second pass: the mosaic
-        if index not in owner:
-            continue
+    def second_pass() -> Iterable[tuple[int, np.ndarray, np.ndarray, FrameQuality | None]]:
+        """The frames again, in order: those kept from the first pass, the others read."""
+        if two_passes and kept.keys() >= owner.keys():
+            while kept:  # in the order read; each let go once added
+                index = next(iter(kept))
+                yield index, *kept.pop(index)
+            return
+        for index, image, mask in frames():
+            if index in kept:
+                yield index, *kept.pop(index)
+            elif index in owner:
+                yield index, image, mask, None
+
+    for index, image, mask, quality in second_pass():  # second pass: the mosaic
         seg = owner[index]
         st = state_of(seg, image.shape[:2])
         if st.canvas is None:
@@ -953,7 +985,8 @@ def render_segments(
         corrected = photometry.correct(image, st.gains.get(index))
         weights = None
         if need_sharpest:
-            q = _sharpness(config, image, mask)
+            quality = quality if quality is not None else _quality(config, image, mask)
+            q = _sharpness(config, quality)
             small = q.shape[1::-1]
             M = st.quality_grid.from_small(H, image.shape[:2], small)
 
@@ -969,7 +1002,7 @@ def render_segments(
                 others = here(st.sharp_count) - (q > 0)
                 mean = (here(st.sharp_sum) - q) / np.maximum(others, 1e-6)
                 share = _frame_share(q, np.where(others > 0.5, mean, 0.0))
-                small_weights = _quality(config, image, mask).glare * share
+                small_weights = quality.glare * share
                 if PRECISION:
                     small_weights = small_weights * _precision(
                         photometry, image.shape, small, st.gains.get(index)
@@ -1009,16 +1042,15 @@ def _frame_share(sharpness: np.ndarray, mean: np.ndarray) -> np.float32:
     return np.float32(min(1.0, rho / SHARPNESS_KNEE) ** SHARPNESS_POWER)
 
 
-def _quality(config: ComposeConfig, image: np.ndarray, mask: np.ndarray):
+def _quality(config: ComposeConfig, image: np.ndarray, mask: np.ndarray) -> FrameQuality:
     factor = analysis_factor(image.shape)
     return frame_quality(image, mask, factor, config.feather_px, config.sharpness_weighting)
 
 
-def _sharpness(config: ComposeConfig, image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def _sharpness(config: ComposeConfig, quality: FrameQuality) -> np.ndarray:
     """What frames are compared by at a place, on the frame's analysis grid: local sharpness
     x glare (`photometry.FrameQuality`); without sharpness weighting (`best`), the distance
     to the frame's border."""
-    quality = _quality(config, image, mask)
     return quality.sharpness() if config.sharpness_weighting else quality.ramp
 
 
