@@ -1,5 +1,5 @@
-"""`mosaic` command line: build, batch, synth, register, evaluate, bench. The only module of
-`mosaic` importing typer.
+"""`mosaic` command line: build, batch, synth, register, compare, evaluate, bench. The only
+module of `mosaic` importing typer.
 
 Every `MosaicError` (bad path, unreadable video, invalid config or weights, ...) becomes one line
 on stderr and exit code 2. `build` and `batch` run each video through `runner.run_video`: Ctrl-C
@@ -552,6 +552,14 @@ def synth(
             "larger, the less overlap and the more curvature between the two).",
         ),
     ] = 16.0,
+    followup_of: Annotated[
+        Path | None,
+        typer.Option(
+            help="A follow-up visit of this synthetic baseline video (or its .gt.json): its "
+            "source with a new haemorrhage, a narrowed vessel and laser scars planted where both "
+            "videos look, the changes in the ground truth (`followup`; see compare.md).",
+        ),
+    ] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json), or
@@ -565,6 +573,8 @@ def synth(
         video_only = {"--interlaced": interlaced, "--lens-reflexes": lens_reflexes,
                       "--dust-spots": dust_spots, "--lens-rim": lens_rim}  # fmt: skip
         given = [name for name, value in video_only.items() if value]
+        if followup_of is not None:
+            given.append("--followup-of")
         if curved_pairs and given:
             raise InputError(f"{' and '.join(given)}: for videos, not --curved-pairs")
         if curved_pairs:
@@ -583,8 +593,15 @@ def synth(
             dust_spots=dust_spots,
             lens_rim=lens_rim,
         )
+        edit = None
+        if followup_of is not None:  # the baseline's own photograph, changed
+            from mosaic.followup import followup_hook, load_baseline_gt
+
+            baseline = load_baseline_gt(followup_of)
+            image = image or Path(baseline["source"])
+            edit = followup_hook(baseline, seed)
         source = pick_source(image or sample_image_path(), seed)
-        gt = write_synthetic_video(source, output, params)
+        gt = write_synthetic_video(source, output, params, edit)
         typer.echo(f"video: {output}\nground truth: {gt}\nsource: {source}")
 
 
@@ -771,6 +788,44 @@ def register(
             _print_pair(result)
     if result["status"] != "registered":
         raise typer.Exit(1)
+
+
+@app.command()
+def compare(
+    baseline: Annotated[
+        Path,
+        typer.Argument(help="Baseline visit: a video, a mosaic (with its report) or a photograph."),
+    ],
+    followup: Annotated[Path, typer.Argument(help="Follow-up visit: the same kinds.")],
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Folder for the pictures and compare.json.")
+    ] = Path("compare"),
+    config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
+    detector: Annotated[str | None, typer.Option(help=f"{', '.join(DETECTORS)}.")] = None,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+) -> None:
+    """Put a follow-up visit on the baseline's map: the follow-up warped, a checkerboard, a
+    two-colour overlay, a change map and compare.json (H/Q_followup_to_baseline, changed
+    regions). Different eyes or no overlap: one line, exit 1."""
+    from mosaic.compare import NotComparableError, run_compare
+
+    _setup_logging(verbose)
+    with _user_errors():
+        check_distinct_paths({"--output": output}, {"BASELINE": baseline, "FOLLOWUP": followup})
+        try:
+            comparison, result = run_compare(
+                baseline, followup, output, _config(config_path, detector)
+            )
+        except NotComparableError as exc:
+            typer.echo(f"not comparable: {exc}", err=True)
+            raise typer.Exit(EXIT_FAILED) from None
+    model = "quadratic" if comparison.Q_followup_to_baseline is not None else comparison.model
+    typer.echo(
+        f"registered ({model}, residual {comparison.residual_px:.2f} px, overlap "
+        f"{100 * comparison.overlap_share:.0f} %, agreement {comparison.correlation:.2f}); "
+        f"{len(comparison.regions)} changed region(s)\nwritten: {output / 'compare.json'}, "
+        + ", ".join(result["pictures"])
+    )
 
 
 def _print_pair(result: dict[str, Any]) -> None:

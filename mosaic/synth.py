@@ -32,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -780,7 +780,11 @@ def _frame_folder(out: Path) -> None:
 
 
 def write_synthetic_video(
-    source_path: str | Path, out_path: str | Path, params: SynthParams
+    source_path: str | Path,
+    out_path: str | Path,
+    params: SynthParams,
+    edit_source: Callable[[np.ndarray, SynthParams], tuple[np.ndarray, dict[str, Any]]]
+    | None = None,
 ) -> Path:
     """Render a synthetic video from a fundus image and write it with its ground truth.
 
@@ -789,10 +793,15 @@ def write_synthetic_video(
     mp4v) or .avi (MJPG) gives a video file, whose compression loss against the rendered frames
     is measured (`psnr_db`: mean, min over the first 250 frames); a path without suffix gives a
     folder of PNG frames `frame_0000.png`, ... (lossless; a new folder or one without images).
-    Every file is written atomically. Returns the ground-truth path.
+    Every file is written atomically. Returns the ground-truth path. `edit_source` changes the
+    source before rendering (a follow-up visit's planted changes, `mosaic.followup`) and gives
+    entries added to the ground truth.
     """
     source_path = pick_source(source_path, params.seed)
     source = read_image(source_path)
+    edits: dict[str, Any] = {}
+    if edit_source is not None:
+        source, edits = edit_source(source, params)
     out = Path(out_path).expanduser()
     if not out.parent.is_dir():
         raise OutputError(f"output folder does not exist: {out.parent}")
@@ -843,6 +852,7 @@ def write_synthetic_video(
         "seed": params.seed,
         "params": dataclasses.asdict(params),
         **compression,
+        **edits,
         "frames": frames_gt,
     }
     gt_path = write_json(gt_path_for(out), gt)

@@ -1,0 +1,525 @@
+"""Two visits of one eye on one map: `mosaic compare BASELINE FOLLOWUP -o OUT_DIR`.
+
+Each visit is a video (its mosaic built with the configuration, `runner.run_video`), a mosaic
+written by `mosaic build` (its report beside it gives the covered area) or a photograph. The
+follow-up is registered onto the baseline with the pair path of `mosaic register`
+(`pipeline.register_pair`: working size from the retina, refinement, the quadratic model where
+it pays, colour against angiogram), each image black outside its covered area, so only what
+both visits saw is matched. A registration is accepted only when the aligned visits agree
+(`MIN_CORRELATION` of their high-passed green channels over the overlap, `MIN_OVERLAP`):
+unrelated eyes or visits without overlap raise `NotComparableError`, never a wild transform.
+
+The change map is the difference of the two visits' high-passed green channels, each
+normalised by its own local contrast (illumination, gain, gamma and focus differ between
+visits), taken as the smallest difference over shifts of up to `SHIFT_PX` (a pixel of residual
+misalignment along a vessel is not a change), smoothed, and measured in units of its own robust
+spread over the overlap. Regions above `CHANGE_SIGMAS` of at least `MIN_REGION_PX` are
+reported.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from mosaic.config import Config, for_photographs
+from mosaic.errors import InputError, MosaicError
+from mosaic.features import FeatureExtractor
+from mosaic.io import (
+    IMAGE_READ_SUFFIXES,
+    read_image,
+    write_image,
+    write_json,
+)
+from mosaic.pipeline import register_pair
+from mosaic.preprocess import retina_disc
+from mosaic.refine import fixed_to_moving_map
+from mosaic.registration import apply_homography, apply_quadratic
+
+log = logging.getLogger(__name__)
+
+# Scales, in pixels of a retina of REFERENCE_RADIUS_PX (a photograph is scaled by its disc's
+# radius; a mosaic is at its frames' scale, taken as this one).
+REFERENCE_RADIUS_PX = 700.0  # the shipped photograph's retina (1411 px)
+FINE_SIGMA_PX = 1.5  # detail finer than this (focus, noise, resampling) is left out
+HIGH_PASS_SIGMA_PX = 10.0  # wider than the large vessels, narrower than a lesion's blob
+CONTRAST_FLOOR = 0.6  # of the median tile contrast: flat retina's noise is not amplified
+CONTRAST_TILE_PX = 128  # local contrast: tiles far narrower than vignetting, twice a lesion
+SMOOTH_SIGMA_PX = 3.0  # the difference smoothed over a few pixels before thresholding
+EDGE_MARGIN_PX = 40.0  # the high-pass's reach (2 sigma) and a frame's dim rim (~20 px)
+RELATIVE = 0.5  # a difference counts relative to the detail's own size: a vessel's contrast
+#   differing by a share between visits (focus, gamma) is not a change; a new blob is
+SHIFT_PX = 1  # residual misalignment forgiven (the registration's own ~1 px)
+COVERED_LEVEL = 6  # grey level above which a mosaic pixel holds retina (the blend's black: 0)
+# A registration of the same eye leaves its aligned high-passed channels correlated over the
+# overlap (0.4-0.9 measured, changes and blending included); unrelated images correlate by
+# chance only, about 1 / sqrt(independent samples): ~0.02 over 10^5 px in blobs of ~5 px.
+MIN_CORRELATION = 0.2
+MIN_OVERLAP = 0.05  # share of the smaller visit's covered area the other must cover
+CHANGE_SIGMAS = 6.0  # a change: this many robust spreads above the overlap's median
+MIN_REGION_PX = 25  # smallest region kept, reference px (a quarter of the smallest change)
+# A region's excess (its change above the threshold, summed) must reach that of the smallest
+# change the issue asks for, 10x10 reference px, at twice the threshold: noise blobs of a
+# blurred, noisy visit reach a few hundred; planted changes thousands (docs/compare.md).
+MIN_EXCESS = 100 * CHANGE_SIGMAS
+MAX_SCALE_CHANGE = 4.0  # visits more than this apart in scale are not the same map
+
+VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv"})
+
+
+class NotComparableError(MosaicError):
+    """The two visits cannot be put on one map: different eyes, or no overlap."""
+
+
+@dataclass(frozen=True)
+class Visit:
+    """One visit as an image on its own map: its pixels, covered area and where it came from."""
+
+    name: str  # "baseline" or "followup"
+    path: Path
+    kind: str  # "video", "mosaic" or "photograph"
+    image: np.ndarray  # BGR uint8
+    covered: np.ndarray  # bool, the image's shape: pixels that show the retina
+    report: Path | None = None  # the mosaic's report (video and mosaic inputs)
+
+
+@dataclass(frozen=True)
+class Region:
+    """A changed region in baseline pixels: bbox (x0, y0, x1, y1), area and mean change (in
+    robust spreads of the change map)."""
+
+    bbox: tuple[int, int, int, int]
+    area_px: int
+    mean_change: float
+    peak_change: float
+    excess: float = 0.0  # sum of the change above the threshold, per reference px²
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "bbox": list(self.bbox),
+            "area_px": self.area_px,
+            "mean_change": round(self.mean_change, 2),
+            "peak_change": round(self.peak_change, 2),
+            "excess": round(self.excess, 1),
+        }
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """The follow-up on the baseline's map, and what changed."""
+
+    H_followup_to_baseline: np.ndarray
+    Q_followup_to_baseline: np.ndarray | None
+    model: str
+    residual_px: float
+    n_inliers: int
+    correlation: float  # of the aligned, normalised high-passed green channels, over the overlap
+    overlap_share: float  # of the smaller visit's covered area
+    warped: np.ndarray  # the follow-up in the baseline's pixels (BGR uint8)
+    warped_covered: np.ndarray  # bool
+    overlap: np.ndarray  # bool: both visits cover
+    change: np.ndarray  # float32, robust spreads above the median; 0 outside the overlap
+    regions: list[Region] = field(default_factory=list)
+    inverted: str | None = None  # the visit inverted to match (an angiogram), if any
+
+    def to_json(self) -> dict[str, Any]:
+        Q = self.Q_followup_to_baseline
+        return {
+            "status": "registered",
+            "H_followup_to_baseline": np.round(self.H_followup_to_baseline, 12).tolist(),
+            "Q_followup_to_baseline": None if Q is None else np.asarray(Q).tolist(),
+            "model": self.model,
+            "residual_px": round(self.residual_px, 3),
+            "n_inliers": self.n_inliers,
+            "correlation": round(self.correlation, 3),
+            "overlap_share": round(self.overlap_share, 4),
+            "overlap_px": int(self.overlap.sum()),
+            "inverted": self.inverted,
+            "change_threshold": CHANGE_SIGMAS,
+            "regions": [r.to_json() for r in self.regions],
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs
+# --------------------------------------------------------------------------------------------
+
+
+def covered_area(image: np.ndarray, report: dict[str, Any] | None = None) -> np.ndarray:
+    """Pixels of an image that show retina: not the blend's black (a mosaic) or the dark
+    border (a photograph), and, with a mosaic's report, inside a registered frame."""
+    bright = (image.max(axis=2) if image.ndim == 3 else image) > COVERED_LEVEL
+    mask = bright.astype(np.uint8)
+    report = report or {}
+    frames = report.get("frames") or []
+    w, h = (report.get("input") or {}).get("width"), (report.get("input") or {}).get("height")
+    main = report.get("main_segment", 0)
+    if frames and w and h:
+        corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
+        placed = np.zeros_like(mask)
+        for f in frames:
+            if f.get("H_to_canvas") is not None and f.get("segment") == main:
+                quad = apply_homography(np.asarray(f["H_to_canvas"], float), corners)
+                cv2.fillConvexPoly(placed, np.round(quad).astype(np.int32), 1)
+        if placed.any():
+            mask &= placed
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)  # dark vessels inside stay covered
+    return cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel).astype(bool)
+
+
+def _report_beside(image_path: Path) -> Path | None:
+    report = image_path.with_suffix(".json")
+    return report if report.is_file() else None
+
+
+def load_visit(
+    path: Path, name: str, out_dir: Path, config: Config, extractor: FeatureExtractor | None
+) -> Visit:
+    """A visit from a video or frame folder (its mosaic built into `out_dir/NAME_mosaic.png`
+    and `.json`), a mosaic with its report beside it, or a photograph."""
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise InputError(f"{name} not found: {path}")
+    suffix = path.suffix.lower()
+    if path.is_dir() or suffix in VIDEO_SUFFIXES:
+        from mosaic.runner import Outputs, run_video
+
+        mosaic_path = out_dir / f"{name}_mosaic.png"
+        outputs = Outputs(mosaic=mosaic_path, report=mosaic_path.with_suffix(".json"))
+        log.info("building the %s mosaic of %s", name, path)
+        run = run_video(path, config, outputs, extractor=extractor, progress=name)
+        if not run.complete or run.result.main is None:
+            raise InputError(f"the {name} video gave no mosaic: {run.error or 'interrupted'}")
+        image = run.result.main.image
+        return Visit(name, path, "video", image, covered_area(image, run.report), outputs.report)
+    if suffix not in IMAGE_READ_SUFFIXES:
+        raise InputError(f"{name} must be a video, a frame folder or an image: {path}")
+    image = read_image(path)
+    if image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    report_path = _report_beside(path)
+    report = None
+    if report_path is not None:
+        try:
+            report = json.loads(report_path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise InputError(
+                f"cannot read the report of the {name} mosaic {report_path}: {exc}"
+            ) from None
+        if not isinstance(report, dict) or "frames" not in report:
+            report, report_path = None, None  # some other JSON beside a photograph
+    kind = "mosaic" if report is not None else "photograph"
+    return Visit(name, path, kind, image, covered_area(image, report), report_path)
+
+
+# --------------------------------------------------------------------------------------------
+# Registration and change
+# --------------------------------------------------------------------------------------------
+
+
+def detail_scale(visit: Visit) -> float:
+    """Pixels of this image per pixel of the reference retina: a photograph's disc radius over
+    `REFERENCE_RADIUS_PX`; a mosaic or magnified view, 1 (video frames' own scale)."""
+    disc = retina_disc(visit.image) if visit.kind == "photograph" else None
+    return 1.0 if disc is None else float(np.clip(disc[2] / REFERENCE_RADIUS_PX, 0.25, 4.0))
+
+
+def _masked_blur(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian mean of `values` over `mask` only (normalised convolution)."""
+    m = mask.astype(np.float32)
+    num = cv2.GaussianBlur(values * m, (0, 0), sigma)
+    den = cv2.GaussianBlur(m, (0, 0), sigma)
+    return num / np.maximum(den, 1e-3)
+
+
+def _tile_median(values: np.ndarray, mask: np.ndarray, tile: int) -> np.ndarray:
+    """The median of `values` over `mask` in each tile of `tile` px, interpolated back to a
+    smooth full-size map (tiles without enough covered pixels take the overall median): a
+    local level that a change covering less than half a tile does not move."""
+    h, w = values.shape
+    ny, nx = -(-h // tile), -(-w // tile)
+    padded = np.full((ny * tile, nx * tile), np.nan, np.float32)
+    padded[:h, :w] = np.where(mask, values, np.nan)
+    blocks = padded.reshape(ny, tile, nx, tile).transpose(0, 2, 1, 3).reshape(ny, nx, -1)
+    enough = np.isfinite(blocks).sum(axis=2) >= tile * tile // 8
+    overall = float(np.median(values[mask])) if mask.any() else 1.0
+    with np.errstate(all="ignore"):
+        medians = np.where(enough, np.nanmedian(np.where(enough[..., None], blocks, 0), axis=2),
+                           overall)  # fmt: skip
+    smooth = cv2.resize(medians.astype(np.float32), (nx * tile, ny * tile), cv2.INTER_LINEAR)
+    return smooth[:h, :w]
+
+
+def normalised_detail(image: np.ndarray, covered: np.ndarray, scale: float) -> np.ndarray:
+    """The green channel's high-pass (detail finer than `HIGH_PASS_SIGMA_PX`) divided by its
+    local contrast (the median |detail| in tiles of `CONTRAST_TILE_PX`, robust to a change
+    inside the tile), both over the covered area only: visits whose illumination, gain,
+    gamma and focus differ give comparable values."""
+    green = (image[..., 1] if image.ndim == 3 else image).astype(np.float32)
+    sharp = _masked_blur(green, covered, FINE_SIGMA_PX * scale)  # focus differs finer than this
+    detail = sharp - _masked_blur(green, covered, HIGH_PASS_SIGMA_PX * scale)
+    tile = max(round(CONTRAST_TILE_PX * scale), 16)
+    contrast = _tile_median(np.abs(detail), covered, tile)
+    floor = float(np.median(contrast[covered])) * CONTRAST_FLOOR if covered.any() else 1.0
+    return np.where(covered, detail / np.maximum(contrast, max(floor, 1e-3)), 0.0).astype(
+        np.float32
+    )
+
+
+CLIP = 5.0  # normalised detail beyond this (|detail| 5x its tile's median) counts as 5
+
+
+def match_levels(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """`image`'s green channel (float32) mapped so that its histogram over `mask` is the
+    reference's there: one visit's gamma and gain made the other's (a monotone map, so a
+    change stays a change)."""
+    green = (image[..., 1] if image.ndim == 3 else image).astype(np.float32)
+    ref = (reference[..., 1] if reference.ndim == 3 else reference).astype(np.float32)
+    if mask.sum() < 100:
+        return green
+    quantiles = np.linspace(0.0, 1.0, 257)
+    src_levels = np.quantile(green[mask], quantiles)
+    ref_levels = np.quantile(ref[mask], quantiles)
+    src_levels = src_levels + np.arange(src_levels.size) * 1e-6  # strictly increasing
+    return np.interp(green, src_levels, ref_levels).astype(np.float32)
+
+
+def _correlation(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    if mask.sum() < 100:
+        return 0.0
+    # clipped: a change's contrast (scars: 100x the median detail) must not decide it
+    x = np.clip(a[mask], -CLIP, CLIP).astype(np.float64)
+    y = np.clip(b[mask], -CLIP, CLIP).astype(np.float64)
+    x, y = x - x.mean(), y - y.mean()
+    return float((x @ y) / max(np.sqrt((x @ x) * (y @ y)), 1e-12))
+
+
+def change_map(
+    base: np.ndarray, follow: np.ndarray, overlap: np.ndarray, scale: float
+) -> np.ndarray:
+    """The change (float32, in robust spreads above the overlap's median; 0 outside it) of two
+    aligned normalised detail images (`normalised_detail`): the smallest |difference| over
+    follow-up shifts of up to `SHIFT_PX`, smoothed by `SMOOTH_SIGMA_PX`."""
+    r = max(round(SHIFT_PX * scale), 1)
+    diff = np.full(base.shape, np.inf, np.float32)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            shifted = np.roll(follow, (dy, dx), axis=(0, 1))
+            relative = np.abs(base - shifted) / (1.0 + RELATIVE * (np.abs(base) + np.abs(shifted)))
+            np.minimum(diff, relative, out=diff)
+    smooth = _masked_blur(diff, overlap, SMOOTH_SIGMA_PX * scale)
+    values = smooth[overlap]
+    if values.size == 0:
+        return np.zeros(base.shape, np.float32)
+    median = float(np.median(values))
+    spread = 1.4826 * float(np.median(np.abs(values - median)))
+    return np.where(overlap, (smooth - median) / max(spread, 1e-6), 0.0).astype(np.float32)
+
+
+def changed_regions(change: np.ndarray, overlap: np.ndarray, scale: float) -> list[Region]:
+    """Connected regions of the change map above `CHANGE_SIGMAS` (of `MIN_REGION_PX` and
+    `MIN_EXCESS` at least), inside the overlap shrunk by
+    `EDGE_MARGIN_PX` (a mosaic's edge is its frames' dim, soft rim, which differs between
+    visits), nearby blobs joined (a pattern of laser spots is one region); largest first."""
+    reach = round(EDGE_MARGIN_PX * scale)
+    inner = cv2.erode(overlap.astype(np.uint8), np.ones((2 * reach + 1,) * 2, np.uint8)) > 0
+    above = (change > CHANGE_SIGMAS) & inner
+    join = max(round(HIGH_PASS_SIGMA_PX * scale), 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * join + 1, 2 * join + 1))
+    joined = cv2.dilate(above.astype(np.uint8), kernel)
+    n, labels, _stats, _ = cv2.connectedComponentsWithStats(joined, connectivity=8)
+    regions = []
+    min_px = MIN_REGION_PX * scale * scale
+    for k in range(1, n):
+        pixels = (labels == k) & above
+        area = int(pixels.sum())
+        if area < min_px:
+            continue
+        ys, xs = np.nonzero(pixels)
+        values = change[pixels]
+        bbox = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+        excess = float((values - CHANGE_SIGMAS).sum()) / (scale * scale)
+        if excess < MIN_EXCESS:
+            continue
+        regions.append(Region(bbox, area, float(values.mean()), float(values.max()), excess))
+    return sorted(regions, key=lambda r: -r.area_px)
+
+
+def _warp(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+
+def compare_visits(
+    baseline: Visit, followup: Visit, config: Config, extractor: FeatureExtractor
+) -> Comparison:
+    """Register the follow-up onto the baseline (each black outside its covered area) and map
+    the change; `NotComparableError` when no registration is found or the aligned visits do
+    not agree (different eyes, no overlap)."""
+    fixed = np.where(baseline.covered[..., None], baseline.image, 0).astype(np.uint8)
+    moving = np.where(followup.covered[..., None], followup.image, 0).astype(np.uint8)
+    reg = register_pair(fixed, moving, for_photographs(config), extractor, "auto")
+    if not reg.ok or reg.H_cur_to_prev is None:
+        raise NotComparableError(
+            f"the follow-up does not register onto the baseline ({reg.reason or 'no model'}): "
+            "different eyes, or visits without overlap"
+        )
+    H, Q = np.asarray(reg.H_cur_to_prev, float), reg.Q_cur_to_prev
+    scale_change = float(np.sqrt(abs(np.linalg.det(H[:2, :2]))))
+    if not 1 / MAX_SCALE_CHANGE < scale_change < MAX_SCALE_CHANGE:
+        raise NotComparableError(
+            f"the registration scales the follow-up by {scale_change:.2f}: not one eye's map"
+        )
+    map_x, map_y = fixed_to_moving_map(H, Q, baseline.image.shape[:2])
+    warped = _warp(followup.image, map_x, map_y)
+    warped_covered = _warp(followup.covered.astype(np.uint8) * 255, map_x, map_y) > 127
+    overlap = baseline.covered & warped_covered
+    smaller = min(int(baseline.covered.sum()), int(followup.covered.sum()))
+    share = float(overlap.sum()) / max(smaller, 1)
+    if share < MIN_OVERLAP:
+        raise NotComparableError(
+            f"the visits overlap on {100 * share:.1f} % of the smaller one "
+            f"(at least {100 * MIN_OVERLAP:.0f} % needed): different eyes, or no overlap"
+        )
+    scale = detail_scale(baseline)
+    base_detail = normalised_detail(baseline.image, baseline.covered, scale)
+    follow_detail = normalised_detail(
+        match_levels(warped, baseline.image, overlap), warped_covered, scale
+    )
+    correlation = _correlation(base_detail, follow_detail, overlap)
+    log.info("registered (%s, %d inliers): overlap %.3f, correlation %.3f",
+             reg.model, reg.n_inliers, share, correlation)  # fmt: skip
+    if correlation < MIN_CORRELATION:
+        raise NotComparableError(
+            f"the aligned visits do not agree (correlation {correlation:.2f}, at least "
+            f"{MIN_CORRELATION} for one eye): different eyes"
+        )
+    change = change_map(base_detail, follow_detail, overlap, scale)
+    inverted = next(
+        (n for n, i in zip(("followup", "baseline"), reg.inverted, strict=True) if i), None
+    )
+    return Comparison(
+        H_followup_to_baseline=H / H[2, 2],
+        Q_followup_to_baseline=None if Q is None else np.asarray(Q, float),
+        model=reg.model,
+        residual_px=float(reg.reproj_error_px),
+        n_inliers=int(reg.n_inliers),
+        correlation=correlation,
+        overlap_share=share,
+        warped=warped,
+        warped_covered=warped_covered,
+        overlap=overlap,
+        change=change,
+        regions=changed_regions(change, overlap, scale),
+        inverted=inverted,
+    )
+
+
+def followup_to_baseline(comparison: Comparison, xy: np.ndarray) -> np.ndarray:
+    """Follow-up pixels (N, 2) in the baseline's pixels (the quadratic when it answered)."""
+    Q = comparison.Q_followup_to_baseline
+    if Q is not None:
+        return apply_quadratic(Q, xy)
+    return apply_homography(comparison.H_followup_to_baseline, xy)
+
+
+# --------------------------------------------------------------------------------------------
+# Pictures
+# --------------------------------------------------------------------------------------------
+
+
+def checkerboard(base: np.ndarray, warped: np.ndarray, tiles: int = 8) -> np.ndarray:
+    """Tiles of the baseline and the aligned follow-up (`tiles` across the longer side)."""
+    tile = max(max(base.shape[:2]) // tiles, 1)
+    yy, xx = np.mgrid[0 : base.shape[0], 0 : base.shape[1]]
+    board = ((yy // tile + xx // tile) % 2).astype(bool)
+    return np.where(board[..., None], warped, base)
+
+
+def two_colour(base: np.ndarray, warped: np.ndarray) -> np.ndarray:
+    """Baseline green channel in magenta, follow-up's in green: aligned detail is grey, what
+    only one visit shows is coloured."""
+    b = cv2.equalizeHist(base[..., 1])
+    f = cv2.equalizeHist(warped[..., 1])
+    return np.dstack([b, f, b])
+
+
+def change_picture(base: np.ndarray, comparison: Comparison) -> np.ndarray:
+    """The change as a heat map over the baseline (grey), the regions boxed; covered by the
+    baseline only: blue tint; by the follow-up only: yellow tint."""
+    grey = cv2.cvtColor(cv2.cvtColor(base, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+    out = (grey * 0.7).astype(np.float32)
+    level = np.clip(comparison.change / (2 * CHANGE_SIGMAS), 0, 1)
+    heat = cv2.applyColorMap((level * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+    alpha = np.clip(comparison.change / CHANGE_SIGMAS, 0, 1)[..., None] * 0.85
+    out = out * (1 - alpha) + heat.astype(np.float32) * alpha
+    covered = grey.max(axis=2) > COVERED_LEVEL
+    only_base = covered & ~comparison.overlap
+    only_follow = comparison.warped_covered & ~comparison.overlap
+    out[only_base] = out[only_base] * 0.5 + np.array([160, 60, 0], np.float32) * 0.5
+    warped_grey = cv2.cvtColor(comparison.warped, cv2.COLOR_BGR2GRAY)[only_follow]
+    out[only_follow] = warped_grey[:, None] * 0.35 + np.array([0, 150, 170], np.float32) * 0.5
+    out = np.clip(out, 0, 255).astype(np.uint8)
+    thickness = max(round(max(base.shape[:2]) / 500), 1)
+    for r in comparison.regions:
+        x0, y0, x1, y1 = r.bbox
+        cv2.rectangle(out, (x0 - 3, y0 - 3), (x1 + 3, y1 + 3), (255, 255, 0), thickness)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# The command
+# --------------------------------------------------------------------------------------------
+
+PICTURES = ("followup_warped.png", "checkerboard.png", "overlay.png", "change_map.png")
+
+
+def run_compare(
+    baseline_path: Path, followup_path: Path, out_dir: Path, config: Config
+) -> tuple[Comparison, dict[str, Any]]:
+    """`mosaic compare`: both visits loaded (videos built), registered and compared; the
+    pictures and `compare.json` written into `out_dir` (created). A refusal
+    (`NotComparableError`) writes `compare.json` with status "refused" and its reason, then
+    raises."""
+    out_dir = Path(out_dir).expanduser()
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        from mosaic.errors import OutputError
+
+        raise OutputError(f"cannot create output folder {out_dir}: {exc.strerror or exc}") from exc
+    extractor = FeatureExtractor(config.features)
+    baseline = load_visit(baseline_path, "baseline", out_dir, config, extractor)
+    followup = load_visit(followup_path, "followup", out_dir, config, extractor)
+    inputs = {
+        v.name: {
+            "path": str(v.path),
+            "kind": v.kind,
+            "report": None if v.report is None else str(v.report),
+            "size": [int(v.image.shape[1]), int(v.image.shape[0])],
+            "covered_px": int(v.covered.sum()),
+        }
+        for v in (baseline, followup)
+    }
+    try:
+        comparison = compare_visits(baseline, followup, config, extractor)
+    except NotComparableError as exc:
+        write_json(out_dir / "compare.json", {"status": "refused", "reason": str(exc), **inputs})
+        raise
+    pictures = {
+        "followup_warped.png": comparison.warped,
+        "checkerboard.png": checkerboard(baseline.image, comparison.warped),
+        "overlay.png": two_colour(baseline.image, comparison.warped),
+        "change_map.png": change_picture(baseline.image, comparison),
+    }
+    for name, picture in pictures.items():
+        write_image(out_dir / name, picture)
+    result = {**comparison.to_json(), "pictures": list(pictures), **inputs}
+    write_json(out_dir / "compare.json", result)
+    return comparison, result
