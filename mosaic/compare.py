@@ -55,6 +55,7 @@ SMOOTH_SIGMA_PX = 3.0  # the difference smoothed over a few pixels before thresh
 EDGE_MARGIN_PX = 40.0  # the high-pass's reach (2 sigma) and a frame's dim rim (~20 px)
 RELATIVE = 0.5  # a difference counts relative to the detail's own size: a vessel's contrast
 #   differing by a share between visits (focus, gamma) is not a change; a new blob is
+SPREAD_FLOOR = 0.02  # of the relative difference: resampling's own (identical visits)
 SHIFT_PX = 1  # residual misalignment forgiven (the registration's own ~1 px)
 COVERED_LEVEL = 6  # grey level above which a mosaic pixel holds retina (the blend's black: 0)
 # A registration of the same eye leaves its aligned high-passed channels correlated over the
@@ -320,7 +321,8 @@ def change_map(
         return np.zeros(base.shape, np.float32)
     median = float(np.median(values))
     spread = 1.4826 * float(np.median(np.abs(values - median)))
-    return np.where(overlap, (smooth - median) / max(spread, 1e-6), 0.0).astype(np.float32)
+    spread = max(spread, SPREAD_FLOOR)  # two copies of one image differ by nothing
+    return np.where(overlap, (smooth - median) / spread, 0.0).astype(np.float32)
 
 
 def changed_regions(change: np.ndarray, overlap: np.ndarray, scale: float) -> list[Region]:
@@ -329,7 +331,9 @@ def changed_regions(change: np.ndarray, overlap: np.ndarray, scale: float) -> li
     `EDGE_MARGIN_PX` (a mosaic's edge is its frames' dim, soft rim, which differs between
     visits), nearby blobs joined (a pattern of laser spots is one region); largest first."""
     reach = round(EDGE_MARGIN_PX * scale)
-    inner = cv2.erode(overlap.astype(np.uint8), np.ones((2 * reach + 1,) * 2, np.uint8)) > 0
+    kernel = np.ones((2 * reach + 1,) * 2, np.uint8)
+    inner = cv2.erode(overlap.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT,
+                      borderValue=0) > 0  # fmt: skip
     above = (change > CHANGE_SIGMAS) & inner
     join = max(round(HIGH_PASS_SIGMA_PX * scale), 1)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * join + 1, 2 * join + 1))

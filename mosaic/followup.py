@@ -47,10 +47,13 @@ class Change:
 
 
 def coverage_mask(H_frames_to_source: np.ndarray, frame_size: tuple[int, int],
-                  shape: tuple[int, int]) -> np.ndarray:  # fmt: skip
-    """Pixels (bool, `shape`) of the source that at least one frame (w, h) shows."""
+                  shape: tuple[int, int], inset: float = 0.2) -> np.ndarray:  # fmt: skip
+    """Pixels (bool, `shape`) of the source that at least one frame (w, h) shows well: its
+    rectangle without `inset` of each side (a frame's corners are outside its aperture, its
+    rim dim, and a mosaic's edge is no place for a change)."""
     w, h = frame_size
-    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
+    x0, y0, x1, y1 = inset * (w - 1), inset * (h - 1), (1 - inset) * (w - 1), (1 - inset) * (h - 1)
+    corners = np.array([[x0, y0, 1], [x1, y0, 1], [x1, y1, 1], [x0, y1, 1]], float)
     mask = np.zeros(shape, np.uint8)
     for H in np.asarray(H_frames_to_source, float):
         p = corners @ H.T
@@ -96,7 +99,8 @@ def _narrowed_vessel(image: np.ndarray, x: int, y: int, half: float,
     eroded = cv2.dilate(image, kernel)  # bright grows: a dark vessel loses width each side
     window = _soft_disc(image.shape[:2], x, y, half, half, edge=0.4)[..., None]
     out = image * (1.0 - window) + eroded * window
-    return out, Change("narrowed_vessel", (x - half, y - half, x + half, y + half))
+    reach = 1.4 * half  # the window's soft edge
+    return out, Change("narrowed_vessel", (x - reach, y - reach, x + reach, y + reach))
 
 
 def _laser_scars(image: np.ndarray, x: int, y: int, spot_r: float, n: int,
@@ -112,7 +116,7 @@ def _laser_scars(image: np.ndarray, x: int, y: int, spot_r: float, n: int,
             core = _soft_disc(image.shape[:2], cx, cy, 0.8 * spot_r, 0.8 * spot_r, edge=0.3)
             out = out * (1.0 - 0.55 * ring[..., None])  # pigment around the spot
             out = out * (1.0 - core[..., None]) + pale * core[..., None]
-    half = -offsets[0] + 1.6 * spot_r
+    half = -offsets[0] + 2.0 * spot_r  # the rings' soft edge (1.63 r) and the jitter
     return out, Change("laser_scars", (x - half, y - half, x + half, y + half))
 
 
@@ -151,7 +155,8 @@ def plant_changes(
     changes: list[Change] = []
     free = allowed.astype(np.uint8)
     for kind in KINDS:
-        reach = int(np.ceil(2.2 * sizes[kind] * (3.5 if kind == "laser_scars" else 1.0)))
+        half = {"haemorrhage": 1.5, "narrowed_vessel": 1.4, "laser_scars": 4.6}[kind]
+        reach = int(np.ceil(1.2 * half * sizes[kind]))  # the change's box, and a margin
         inner = cv2.erode(free, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)) > 0
         score = {"haemorrhage": -np.abs(brightness - np.median(brightness[in_disc])),
                  "narrowed_vessel": vessel_score, "laser_scars": calm}[kind]  # fmt: skip
@@ -165,7 +170,7 @@ def plant_changes(
             image, change = _laser_scars(image, x, y, sizes[kind], 3, rng)
         changes.append(change)
         x0, y0, x1, y1 = (round(v) for v in change.bbox)
-        pad = int(2 * sizes[kind])
+        pad = int(sizes[kind] / 2)  # the changes' boxes apart
         free[max(y0 - pad, 0) : y1 + pad, max(x0 - pad, 0) : x1 + pad] = 0
         log.info("planted %s at (%d, %d)", kind, x, y)
     return np.clip(image + 0.5, 0, 255).astype(np.uint8), changes
