@@ -1,7 +1,7 @@
 """Make the documentation's pictures (docs/img/*.jpg) with the app's own commands.
 
     python docs/make_pictures.py [sample] [matches] [hard] [evaluation] [curved] [curved-val]
-                                 [--work DIR] [--force]
+                                 [compare] [--work DIR] [--force]
 
 Each picture runs `mosaic ...` commands (printed as they run; their outputs go to the work
 folder, default /tmp/retina-mosaic-pictures, and are reused unless --force), then frames
@@ -246,6 +246,32 @@ def curved_val(work: Path, force: bool) -> None:
     print(f"wrote {path} (not under docs/img: rendered from a photograph we may not ship)")
 
 
+def compare(work: Path, force: bool) -> None:
+    """docs/img/compare_visits.jpg: `mosaic compare` of two synthetic visits of one eye (the
+    follow-up with a haemorrhage, a narrowed vessel and laser scars planted)."""
+    out = work / "compare"
+    out.mkdir(exist_ok=True)
+    run("mosaic synth -o compare/base.mp4 --seed 0 --frames 60", work, out / "base.mp4", force)
+    run(
+        "mosaic synth -o compare/follow.mp4 --seed 1 --frames 60 --followup-of compare/base.mp4",
+        work,
+        out / "follow.mp4",
+        force,
+    )
+    run(
+        "mosaic compare compare/base.mp4 compare/follow.mp4 -o compare/out",
+        work,
+        out / "out" / "compare.json",
+        force,
+    )
+    names = [("baseline_mosaic.png", "baseline mosaic"),
+             ("followup_warped.png", "follow-up on the baseline's map"),
+             ("checkerboard.png", "checkerboard"), ("overlay.png", "two-colour overlay"),
+             ("change_map.png", "change map, regions boxed")]  # fmt: skip
+    tiles = [label(fit(cv2.imread(str(out / "out" / n)), width=320), t) for n, t in names]
+    save("compare_visits.jpg", column([row(tiles[:3]), row(tiles[3:])]))
+
+
 PICTURES = {
     "sample": sample,
     "matches": matches,
@@ -253,6 +279,7 @@ PICTURES = {
     "evaluation": evaluation,
     "curved": curved,
     "curved-val": curved_val,
+    "compare": compare,
 }
 
 

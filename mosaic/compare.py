@@ -384,7 +384,8 @@ def compare_visits(
     warped = _warp(followup.image, map_x, map_y)
     warped_covered = _warp(followup.covered.astype(np.uint8) * 255, map_x, map_y) > 127
     overlap = baseline.covered & warped_covered
-    smaller = min(int(baseline.covered.sum()), int(followup.covered.sum()))
+    # the smaller visit's retina, in baseline pixels (the follow-up's scaled by the answer)
+    smaller = min(float(baseline.covered.sum()), followup.covered.sum() * scale_change**2)
     share = float(overlap.sum()) / max(smaller, 1)
     if share < MIN_OVERLAP:
         raise NotComparableError(
@@ -438,12 +439,17 @@ def followup_to_baseline(comparison: Comparison, xy: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def checkerboard(base: np.ndarray, warped: np.ndarray, tiles: int = 8) -> np.ndarray:
-    """Tiles of the baseline and the aligned follow-up (`tiles` across the longer side)."""
+def checkerboard(
+    base: np.ndarray, warped: np.ndarray, warped_covered: np.ndarray, tiles: int = 8
+) -> np.ndarray:
+    """Tiles of the baseline and the aligned follow-up (`tiles` across the longer side); where
+    one visit has no retina, the other's."""
     tile = max(max(base.shape[:2]) // tiles, 1)
     yy, xx = np.mgrid[0 : base.shape[0], 0 : base.shape[1]]
     board = ((yy // tile + xx // tile) % 2).astype(bool)
-    return np.where(board[..., None], warped, base)
+    base_covered = base.max(axis=2) > COVERED_LEVEL
+    follow = (board & warped_covered) | (warped_covered & ~base_covered)
+    return np.where(follow[..., None], warped, base)
 
 
 def two_colour(base: np.ndarray, warped: np.ndarray) -> np.ndarray:
@@ -518,7 +524,9 @@ def run_compare(
         raise
     pictures = {
         "followup_warped.png": comparison.warped,
-        "checkerboard.png": checkerboard(baseline.image, comparison.warped),
+        "checkerboard.png": checkerboard(
+            baseline.image, comparison.warped, comparison.warped_covered
+        ),
         "overlay.png": two_colour(baseline.image, comparison.warped),
         "change_map.png": change_picture(baseline.image, comparison),
     }
