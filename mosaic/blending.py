@@ -106,6 +106,16 @@ class LaplacianBlender:
         Pixels weighing under `trusted` x the frame's largest weight (glare) keep their tiny
         weight but not their values: those are filled from the rest of the frame before its
         pyramid is built, so that the coarse levels, whose weights spread, carry no halo."""
+        boxed = self.boxed(image, weight, x0, y0)
+        if boxed is not None:
+            self.add_boxed(boxed, trusted)
+
+    def boxed(
+        self, image: np.ndarray, weight: np.ndarray, x0: int, y0: int
+    ) -> tuple[np.ndarray, np.ndarray, int, int] | None:
+        """The first half of `add`: the frame and its weight (0 where invalid) copied into an
+        aligned box of the canvas, (image, weight, box x0, box y0), None when nothing of it is
+        inside. A copy: the caller may reuse its buffers while `add_boxed` runs elsewhere."""
         h, w = weight.shape
         image = image.reshape(h, w, self.channels)
         step = 1 << self.levels
@@ -117,18 +127,24 @@ class LaplacianBlender:
         by0 = max((y0 - margin) // step * step, 0)
         bx1 = min(-(-(x0 + w + margin) // step) * step, pw)
         by1 = min(-(-(y0 + h + margin) // step) * step, ph)
-        if bx1 <= bx0 or by1 <= by0:
-            return
-        box_img = np.zeros((by1 - by0, bx1 - bx0, self.channels), np.float32)
-        box_w = np.zeros((by1 - by0, bx1 - bx0), np.float32)
         # the part of the frame's box inside the canvas
         sx0, sy0 = max(bx0 - x0, 0), max(by0 - y0, 0)
         sx1, sy1 = min(bx1 - x0, w), min(by1 - y0, h)
-        if sx1 <= sx0 or sy1 <= sy0:
-            return
+        if bx1 <= bx0 or by1 <= by0 or sx1 <= sx0 or sy1 <= sy0:
+            return None
+        box_img = np.zeros((by1 - by0, bx1 - bx0, self.channels), np.float32)
+        box_w = np.zeros((by1 - by0, bx1 - bx0), np.float32)
         dst = (slice(y0 + sy0 - by0, y0 + sy1 - by0), slice(x0 + sx0 - bx0, x0 + sx1 - bx0))
         box_img[dst] = image[sy0:sy1, sx0:sx1]
         box_w[dst] = np.maximum(weight[sy0:sy1, sx0:sx1], 0.0)
+        return box_img, box_w, bx0, by0
+
+    def add_boxed(
+        self, boxed: tuple[np.ndarray, np.ndarray, int, int], trusted: float = 1e-3
+    ) -> None:
+        """The second half of `add`: the boxed frame's pyramid into the accumulators."""
+        box_img, box_w, bx0, by0 = boxed
+        by1, bx1 = by0 + box_w.shape[0], bx0 + box_w.shape[1]
         valid = box_w > trusted * float(box_w.max())
         if not valid.any():
             return

@@ -41,7 +41,8 @@ import dataclasses
 import logging
 import math
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Container, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -50,6 +51,7 @@ import numpy as np
 from mosaic.blending import LaplacianBlender, shrink_noise
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
+from mosaic.io import Lookahead
 from mosaic.photometry import (
     DARK,
     SATURATED,
@@ -79,9 +81,13 @@ MULTIBAND_LEVELS = 5  # Laplacian levels: seams are smoothed over ~2^5 = 32 px
 # then ~0.55 GB, docs/compose.md) feathers instead (19 bytes a pixel), with a warning
 MULTIBAND_MAX_BYTES = 256 * 2**20
 RENDER_ROWS = 256  # rows of a strip of `Canvas.render`
-# the re-render keeps frames (decoded, with their masks and quality) from its first pass for the
-# second, up to this many bytes; frames past it are read again
-RERENDER_KEEP_BYTES = 256 * 2**20
+# frames whose multiband pyramids may wait for the canvas' blending thread (each a copy of the
+# frame's box: ~6 MB at 660x350, ~45 MB at 1920x1080)
+BLEND_AHEAD = 1
+# the re-render keeps frames (decoded, their masks as bits, their quality) from its first pass
+# for the second, up to this many bytes (113 frames of 660x350 take 82 MB; 14 of 1920x1080
+# fit); the video is read again for the others
+RERENDER_KEEP_BYTES = 96 * 2**20
 # feather / average / multiband: weight x min(1, relative sharpness / knee)^power
 SHARPNESS_KNEE = 0.8  # frames at least this sharp (relative to the others there) count fully
 SHARPNESS_POWER = 4.0  # ... blurrier ones fall off fast: half the knee weighs 1/16
@@ -157,6 +163,9 @@ class Canvas:
         self._scratch_bufs: dict[str, np.ndarray] = {}
         self._blender: LaplacianBlender | None = None
         self._blend_origin = (0, 0)  # reference coords of the blender's pixel (0, 0)
+        # multiband's pyramids are built in a thread of their own (`_blend_later`)
+        self._blending: ThreadPoolExecutor | None = None
+        self._pending: deque[Future[None]] = deque()
         if extent is not None:
             x0, y0, x1, y1 = extent
             self._buf_x0, self._buf_y0 = x0, y0
@@ -204,12 +213,22 @@ class Canvas:
     def render(self) -> np.ndarray:
         """Blended mosaic, uint8 (H, W, C); pixels no frame covered are 0. Rendered in strips
         of `RENDER_ROWS` rows: no float image of the whole canvas is made."""
+        self.flush()
         sum_c, weight_c = self._content_views()
         out = np.zeros(sum_c.shape, np.uint8)
         for r0 in range(0, out.shape[0], RENDER_ROWS):
             r1 = min(r0 + RENDER_ROWS, out.shape[0])
             out[r0:r1] = self._render_rows(sum_c[r0:r1], weight_c[r0:r1], r0)
         return out
+
+    def flush(self) -> None:
+        """Wait until the frames added so far are in the multiband pyramids (they are built in
+        a thread of their own; raises what it raised there), and let that thread go."""
+        while self._pending:
+            self._pending.popleft().result()
+        if self._blending is not None:
+            self._blending.shutdown(wait=True)
+            self._blending = None
 
     def picture(self) -> np.ndarray:
         """The mosaic as written and reported: `render`, with `denoise` the noise the blend
@@ -416,11 +435,25 @@ class Canvas:
             cv2.accumulate(weight, weight_roi, valid)
             if self._blender is not None:
                 ox, oy = self._blend_origin
-                self._blender.add(warped_f, weight, fx0 - ox, fy0 - oy)
+                boxed = self._blender.boxed(warped_f, weight, fx0 - ox, fy0 - oy)
+                if boxed is not None:
+                    self._blend_later(boxed)
         self._content = union
         self._n_frames += 1
 
     # ----------------------------------------------------------------------------- internals
+
+    def _blend_later(self, boxed: tuple[np.ndarray, np.ndarray, int, int]) -> None:
+        """Hand a boxed frame (`LaplacianBlender.boxed`, a copy) to the blending thread: its
+        pyramid is most of a frame's compositing and needs nothing else, so it runs beside the
+        next frame's reading, weighting and warping (OpenCV releases the GIL). One thread, in
+        order: the accumulators add up as they would here."""
+        assert self._blender is not None
+        if self._blending is None:
+            self._blending = ThreadPoolExecutor(1, thread_name_prefix="multiband")
+        while len(self._pending) >= BLEND_AHEAD:
+            self._pending.popleft().result()
+        self._pending.append(self._blending.submit(self._blender.add_boxed, boxed))
 
     def _accumulate_more(self, M: np.ndarray, valid: np.ndarray, roi: tuple[slice, slice]) -> None:
         """Hook of `add` (average blend): more planes under the same placement (`_Planes`)."""
@@ -812,6 +845,7 @@ def _mean(image: np.ndarray) -> np.ndarray:
 
 
 FrameSource = Callable[[], Iterable[tuple[int, np.ndarray, np.ndarray]]]
+_Read = tuple[int, np.ndarray, np.ndarray, FrameQuality | None]  # a frame, its mask, quality
 BeforeAdd = Callable[[int, Canvas, np.ndarray, np.ndarray, np.ndarray], None]
 
 
@@ -882,6 +916,22 @@ class _SegmentRender:
 
 
 @dataclass(frozen=True)
+class _Kept:
+    """A frame the re-render's first pass keeps for its second: as decoded, its mask packed
+    into bits (`np.packbits` of mask != 0) and its quality maps (None: not measured)."""
+
+    image: np.ndarray
+    mask_bits: np.ndarray
+    quality: FrameQuality | None
+
+    def unpacked(self) -> tuple[np.ndarray, np.ndarray, FrameQuality | None]:
+        """(image, mask as uint8 0 / 255, quality)."""
+        h, w = self.image.shape[:2]
+        mask = np.unpackbits(self.mask_bits, count=h * w).reshape(h, w)
+        return self.image, cv2.multiply(mask, 255), self.quality
+
+
+@dataclass(frozen=True)
 class Rendered:
     """A re-rendered segment: its canvas and the exposure gains its frames were given."""
 
@@ -909,7 +959,7 @@ def render_segments(
     photometry = photometry if photometry is not None else VideoPhotometry(False, False)
     need_sharpest = config.sharpness_weighting or config.blend == "best"
     states: dict[int, _SegmentRender] = {}
-    kept: dict[int, tuple[np.ndarray, np.ndarray, FrameQuality | None]] = {}
+    kept: dict[int, _Kept] = {}
 
     def state_of(seg: int, shape: tuple[int, int]) -> _SegmentRender:
         if seg not in states:
@@ -928,31 +978,27 @@ def render_segments(
             )
         return states[seg]
 
+    def reads(known: Container[int] = (), measure: bool = True) -> Iterator[_Read]:
+        """The segments' frames read, with their quality maps where `measure` (None where not
+        needed, or for the `known` frames, whose image is not used)."""
+        for index, image, mask in frames():
+            if index in owner:
+                measured = measure and need_sharpest and index not in known
+                yield index, image, mask, _quality(config, image, mask) if measured else None
+
     two_passes = config.exposure or need_sharpest
     if two_passes:  # first pass: statistics only
         room = keep_bytes
-        for index, image, mask in frames():
-            if index not in owner:
-                continue
-            st = state_of(owner[index], image.shape[:2])
-            H = st.poses[index]
-            quality = _quality(config, image, mask) if need_sharpest else None
-            if quality is not None:
-                q = _sharpness(config, quality)
-                M = st.quality_grid.from_small(H, image.shape[:2], q.shape[1::-1])
-                box = _warp_box(q, M, st.sharpest.shape)
-                seen = _warp_box((q > 0).astype(np.float32), M, st.sharpest.shape)
-                if box is not None and seen is not None:
-                    x0, y0, roi = box
-                    cells = (slice(y0, y0 + roi.shape[0]), slice(x0, x0 + roi.shape[1]))
-                    np.maximum(st.sharpest[cells], roi, out=st.sharpest[cells])
-                    st.sharp_sum[cells] += roi
-                    st.sharp_count[cells] += seen[2]
-            if config.exposure:
-                _observe_cells(st, index, image, mask, H, photometry)
-            if image.nbytes + mask.nbytes <= room:
-                kept[index] = (image, mask, quality)
-                room -= image.nbytes + mask.nbytes
+        # read a frame ahead in a thread, while this one measures the frame before
+        with Lookahead(reads(measure=False)) as first:
+            for index, image, mask, _ in first:
+                quality = _quality(config, image, mask) if need_sharpest else None
+                st = state_of(owner[index], image.shape[:2])
+                _first_pass(config, st, index, image, mask, quality, photometry)
+                packed = np.packbits(mask != 0)  # only where the mask is nonzero matters
+                if image.nbytes + packed.nbytes <= room:
+                    kept[index] = _Kept(image, packed, quality)
+                    room -= image.nbytes + packed.nbytes
         for seg, st in states.items():
             if config.exposure:
                 st.gains = st.observations.solve()
@@ -963,18 +1009,19 @@ def render_segments(
                         seg, values.min(), values.max(), float(np.median(values)), len(values),
                     )  # fmt: skip
 
-    def second_pass() -> Iterable[tuple[int, np.ndarray, np.ndarray, FrameQuality | None]]:
+    def second_pass() -> Iterator[_Read]:
         """The frames again, in order: those kept from the first pass, the others read."""
         if two_passes and kept.keys() >= owner.keys():
             while kept:  # in the order read; each let go once added
                 index = next(iter(kept))
-                yield index, *kept.pop(index)
+                yield index, *kept.pop(index).unpacked()
             return
-        for index, image, mask in frames():
-            if index in kept:
-                yield index, *kept.pop(index)
-            elif index in owner:
-                yield index, image, mask, None
+        with Lookahead(reads(kept.keys())) as again:
+            for index, image, mask, quality in again:
+                if index in kept:
+                    yield index, *kept.pop(index).unpacked()
+                else:
+                    yield index, image, mask, quality
 
     for index, image, mask, quality in second_pass():  # second pass: the mosaic
         seg = owner[index]
@@ -1011,9 +1058,40 @@ def render_segments(
         if before_add is not None:
             before_add(index, st.canvas, image, H, mask)
         st.canvas.add(corrected, H, mask, weights)
+    for st in states.values():
+        if st.canvas is not None:
+            st.canvas.flush()  # the blending thread's last frames, and the thread let go
     return {
         seg: Rendered(st.canvas, st.gains) for seg, st in states.items() if st.canvas is not None
     }
+
+
+def _first_pass(
+    config: ComposeConfig,
+    st: _SegmentRender,
+    index: int,
+    image: np.ndarray,
+    mask: np.ndarray,
+    quality: FrameQuality | None,
+    photometry: VideoPhotometry,
+) -> None:
+    """What the re-render's first pass keeps of a frame: its sharpness on the segment's
+    quality grid (the most, the sum and the count of frames per cell) and its exposure
+    observations."""
+    H = st.poses[index]
+    if quality is not None:
+        q = _sharpness(config, quality)
+        M = st.quality_grid.from_small(H, image.shape[:2], q.shape[1::-1])
+        box = _warp_box(q, M, st.sharpest.shape)
+        seen = _warp_box((q > 0).astype(np.float32), M, st.sharpest.shape)
+        if box is not None and seen is not None:
+            x0, y0, roi = box
+            cells = (slice(y0, y0 + roi.shape[0]), slice(x0, x0 + roi.shape[1]))
+            np.maximum(st.sharpest[cells], roi, out=st.sharpest[cells])
+            st.sharp_sum[cells] += roi
+            st.sharp_count[cells] += seen[2]
+    if config.exposure:
+        _observe_cells(st, index, image, mask, H, photometry)
 
 
 def _precision(

@@ -412,7 +412,17 @@ def _random_canvas(blend: str = "multiband") -> Canvas:
         image = rng.uniform(0, 255, (90, 120, 3)).astype(np.float32)
         H = similarity(3.0 * i, 1.0 + 0.01 * i, 25.3 * i - 10, 17.7 * (i % 7))
         canvas.add(image, H, None, rng.uniform(0.5, 2.0, (90, 120)).astype(np.float32))
+    canvas.flush()  # the blending thread's frames in the blender
     return canvas
+
+
+def test_multiband_in_its_thread_renders_as_in_order_here(monkeypatch) -> None:
+    """The pyramids built in the canvas' blending thread (`BLEND_AHEAD` frames ahead) give
+    the mosaic, pixel for pixel, that adding each frame's pyramid in the caller's thread
+    gives."""
+    threaded = _random_canvas().render()
+    monkeypatch.setattr(Canvas, "_blend_later", lambda self, boxed: self._blender.add_boxed(boxed))
+    np.testing.assert_array_equal(_random_canvas().render(), threaded)
 
 
 def test_multiband_renders_strip_by_strip_exactly(monkeypatch) -> None:

@@ -171,6 +171,32 @@ def test_exposure_recovers_injected_gains_within_two_percent(scene: np.ndarray) 
     assert np.abs(ratio - 1).max() < 0.02, ratio
 
 
+@pytest.mark.parametrize("keep_bytes", [0, 5 * (H * W * 3 + H * W // 8)])  # none; five frames
+def test_rerender_reads_again_past_what_it_keeps_and_renders_the_same(
+    scene: np.ndarray, keep_bytes: int
+) -> None:
+    """The re-render keeps the frames of its first pass for its second up to `keep_bytes`
+    (none; the first five) and reads the others again: the same mosaic and gains, pixel for
+    pixel, as with every frame kept, and each frame read once more only when it was not
+    kept."""
+    frames, poses, _ = _gain_video(scene)
+    config = ComposeConfig()  # multiband, exposure, flat-field, sharpness weighting
+    reads: list[int] = []
+
+    def counted():
+        for index, image, mask in _source(frames)():
+            reads.append(index)
+            yield index, image, mask
+
+    kept_all = render_segments(config, _source(frames), poses)[0]
+    partly = render_segments(config, counted, poses, keep_bytes=keep_bytes)[0]
+    np.testing.assert_array_equal(partly.canvas.render(), kept_all.canvas.render())
+    assert partly.gains == kept_all.gains
+    assert len(reads) == 2 * len(frames)  # a second read whenever a frame was not kept
+    assert len(render_segments(config, counted, poses)) == 1
+    assert len(reads) == 3 * len(frames)  # all kept: read once
+
+
 def test_gain_solve_is_robust_to_a_glared_cell() -> None:
     obs = GainObservations()
     cells = np.arange(50)
