@@ -40,7 +40,7 @@ from mosaic.io import (
 from mosaic.pipeline import register_pair
 from mosaic.preprocess import retina_disc
 from mosaic.refine import fixed_to_moving_map
-from mosaic.registration import apply_homography, apply_quadratic
+from mosaic.registration import apply_homography, apply_quadratic, quadratic_terms
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 REFERENCE_RADIUS_PX = 700.0  # the shipped photograph's retina (1411 px)
 FINE_SIGMA_PX = 1.5  # detail finer than this (focus, noise, resampling) is left out
 HIGH_PASS_SIGMA_PX = 10.0  # wider than the large vessels, narrower than a lesion's blob
-CONTRAST_FLOOR = 0.6  # of the median tile contrast: flat retina's noise is not amplified
+CONTRAST_FLOOR = 1.0  # of the median tile contrast: flat retina (noise, compression) not amplified
 CONTRAST_TILE_PX = 128  # local contrast: tiles far narrower than vignetting, twice a lesion
 SMOOTH_SIGMA_PX = 3.0  # the difference smoothed over a few pixels before thresholding
 EDGE_MARGIN_PX = 40.0  # the high-pass's reach (2 sigma) and a frame's dim rim (~20 px)
@@ -70,6 +70,10 @@ MIN_REGION_PX = 25  # smallest region kept, reference px (a quarter of the small
 # blurred, noisy visit reach a few hundred; planted changes thousands (docs/compare.md).
 MIN_EXCESS = 100 * CHANGE_SIGMAS
 MAX_SCALE_CHANGE = 4.0  # visits more than this apart in scale are not the same map
+
+# A photograph against a mosaic: mosaic pixels per photograph pixel tried (a video's frames
+# show the retina at the photograph's scale or magnified, up to ~4x: docs/compare.md)
+MOSAIC_PER_PHOTO_PX = (1.0, 1.5, 2.25, 3.4, 0.67)
 
 VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv"})
 
@@ -360,21 +364,97 @@ def _warp(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray
     return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
-def compare_visits(
-    baseline: Visit, followup: Visit, config: Config, extractor: FeatureExtractor
-) -> Comparison:
-    """Register the follow-up onto the baseline (each black outside its covered area) and map
-    the change; `NotComparableError` when no registration is found or the aligned visits do
-    not agree (different eyes, no overlap)."""
-    fixed = np.where(baseline.covered[..., None], baseline.image, 0).astype(np.uint8)
-    moving = np.where(followup.covered[..., None], followup.image, 0).astype(np.uint8)
+@dataclass(frozen=True)
+class _Aligned:
+    """One registration of the follow-up onto the baseline, checked."""
+
+    H: np.ndarray
+    Q: np.ndarray | None
+    model: str
+    residual_px: float
+    n_inliers: int
+    inverted: tuple[bool, bool]
+    warped: np.ndarray
+    warped_covered: np.ndarray
+    overlap: np.ndarray
+    share: float
+    base_detail: np.ndarray
+    follow_detail: np.ndarray
+    correlation: float
+
+
+def _pixel_scale(k: float) -> np.ndarray:
+    """The map of pixels into an image resized by `k` (`cv2.resize`: pixel centres)."""
+    return np.array([[k, 0, 0.5 * k - 0.5], [0, k, 0.5 * k - 0.5], [0, 0, 1.0]])
+
+
+def _resized(visit: Visit, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """The visit's image, black outside its covered area, and that area, resized by `k`."""
+    image = np.where(visit.covered[..., None], visit.image, 0).astype(np.uint8)
+    if k == 1.0:
+        return image, visit.covered
+    size = (max(round(image.shape[1] * k), 1), max(round(image.shape[0] * k), 1))
+    covered = cv2.resize(visit.covered.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), covered.astype(bool)
+
+
+def _scales_to_try(baseline: Visit, followup: Visit, config: Config) -> list[tuple[float, float]]:
+    """(baseline, follow-up) pre-scales to register at: as they are; and, for a photograph of a
+    whole retina against a mosaic (the pair path scales the one by its retina, the other by its
+    side, so they meet at one scale only by chance), the mosaic brought to the photograph's
+    working scale for each ratio of `MOSAIC_PER_PHOTO_PX`."""
+    tries = [(1.0, 1.0)]
+    photos = [v.kind == "photograph" for v in (baseline, followup)]
+    if photos[0] == photos[1]:
+        return tries
+    photo = baseline if photos[0] else followup
+    disc = retina_disc(photo.image)
+    pre = config.preprocess
+    if disc is None or pre.fov_diameter_px <= 0:
+        return tries
+    s_photo = min(1.0, pre.fov_diameter_px / (2 * disc[2]))
+    for ratio in MOSAIC_PER_PHOTO_PX:
+        k = s_photo / ratio
+        if k < 1.0:
+            tries.append((1.0, k) if photos[0] else (k, 1.0))
+    return tries
+
+
+def _rescaled(
+    H: np.ndarray, Q: np.ndarray | None, kb: float, kf: float, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """A registration of the visits resized by (kb, kf) in the visits' own pixels."""
+    Sb, Sf = _pixel_scale(kb), _pixel_scale(kf)
+    H = np.linalg.inv(Sb) @ H @ Sf
+    if Q is None:
+        return H / H[2, 2], None
+    h, w = shape
+    gx, gy = np.meshgrid(np.linspace(0, w - 1, 16), np.linspace(0, h - 1, 16))
+    grid = np.column_stack([gx.ravel(), gy.ravel()])
+    target = apply_homography(np.linalg.inv(Sb), apply_quadratic(Q, apply_homography(Sf, grid)))
+    Q_fit, *_ = np.linalg.lstsq(quadratic_terms(grid), target, rcond=None)
+    return H / H[2, 2], Q_fit.T
+
+
+def _align(
+    baseline: Visit,
+    followup: Visit,
+    scales: tuple[float, float],
+    config: Config,
+    extractor: FeatureExtractor,
+) -> _Aligned:
+    """Register the follow-up onto the baseline (each black outside its covered area, resized
+    by `scales` first) and check the answer; `NotComparableError` says why it does not stand."""
+    (fixed, _), (moving, _) = (_resized(v, k) for v, k in zip((baseline, followup), scales,
+                                                               strict=True))  # fmt: skip
     reg = register_pair(fixed, moving, for_photographs(config), extractor, "auto")
     if not reg.ok or reg.H_cur_to_prev is None:
         raise NotComparableError(
             f"the follow-up does not register onto the baseline ({reg.reason or 'no model'}): "
             "different eyes, or visits without overlap"
         )
-    H, Q = np.asarray(reg.H_cur_to_prev, float), reg.Q_cur_to_prev
+    H, Q = _rescaled(np.asarray(reg.H_cur_to_prev, float), reg.Q_cur_to_prev, *scales,
+                     followup.image.shape[:2])  # fmt: skip
     scale_change = float(np.sqrt(abs(np.linalg.det(H[:2, :2]))))
     if not 1 / MAX_SCALE_CHANGE < scale_change < MAX_SCALE_CHANGE:
         raise NotComparableError(
@@ -386,7 +466,7 @@ def compare_visits(
     overlap = baseline.covered & warped_covered
     # the smaller visit's retina, in baseline pixels (the follow-up's scaled by the answer)
     smaller = min(float(baseline.covered.sum()), followup.covered.sum() * scale_change**2)
-    share = float(overlap.sum()) / max(smaller, 1)
+    share = min(float(overlap.sum()) / max(smaller, 1), 1.0)
     if share < MIN_OVERLAP:
         raise NotComparableError(
             f"the visits overlap on {100 * share:.1f} % of the smaller one "
@@ -398,30 +478,55 @@ def compare_visits(
         match_levels(warped, baseline.image, overlap), warped_covered, scale
     )
     correlation = _correlation(base_detail, follow_detail, overlap)
-    log.info("registered (%s, %d inliers): overlap %.3f, correlation %.3f",
-             reg.model, reg.n_inliers, share, correlation)  # fmt: skip
+    log.info("registered (%s, %d inliers, scales %.2f, %.2f): overlap %.3f, correlation %.3f",
+             reg.model, reg.n_inliers, *scales, share, correlation)  # fmt: skip
     if correlation < MIN_CORRELATION:
         raise NotComparableError(
             f"the aligned visits do not agree (correlation {correlation:.2f}, at least "
             f"{MIN_CORRELATION} for one eye): different eyes"
         )
-    change = change_map(base_detail, follow_detail, overlap, scale)
+    return _Aligned(
+        H, Q, reg.model, float(reg.reproj_error_px) / scales[0], int(reg.n_inliers),
+        reg.inverted, warped, warped_covered, overlap, share, base_detail, follow_detail,
+        correlation,
+    )  # fmt: skip
+
+
+def compare_visits(
+    baseline: Visit, followup: Visit, config: Config, extractor: FeatureExtractor
+) -> Comparison:
+    """Register the follow-up onto the baseline (`_align`; a photograph against a mosaic at
+    each of `_scales_to_try` until one stands) and map the change; `NotComparableError` when
+    no registration stands (different eyes, no overlap)."""
+    first: NotComparableError | None = None
+    for scales in _scales_to_try(baseline, followup, config):
+        try:
+            a = _align(baseline, followup, scales, config, extractor)
+            break
+        except NotComparableError as exc:
+            first = first or exc
+            log.info("not at scales %.2f, %.2f: %s", *scales, exc)
+    else:
+        assert first is not None
+        raise first
+    scale = detail_scale(baseline)
+    change = change_map(a.base_detail, a.follow_detail, a.overlap, scale)
     inverted = next(
-        (n for n, i in zip(("followup", "baseline"), reg.inverted, strict=True) if i), None
+        (n for n, i in zip(("followup", "baseline"), a.inverted, strict=True) if i), None
     )
     return Comparison(
-        H_followup_to_baseline=H / H[2, 2],
-        Q_followup_to_baseline=None if Q is None else np.asarray(Q, float),
-        model=reg.model,
-        residual_px=float(reg.reproj_error_px),
-        n_inliers=int(reg.n_inliers),
-        correlation=correlation,
-        overlap_share=share,
-        warped=warped,
-        warped_covered=warped_covered,
-        overlap=overlap,
+        H_followup_to_baseline=a.H,
+        Q_followup_to_baseline=None if a.Q is None else np.asarray(a.Q, float),
+        model=a.model,
+        residual_px=a.residual_px,
+        n_inliers=a.n_inliers,
+        correlation=a.correlation,
+        overlap_share=a.share,
+        warped=a.warped,
+        warped_covered=a.warped_covered,
+        overlap=a.overlap,
         change=change,
-        regions=changed_regions(change, overlap, scale),
+        regions=changed_regions(change, a.overlap, scale),
         inverted=inverted,
     )
 

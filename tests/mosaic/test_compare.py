@@ -185,7 +185,8 @@ def test_unrelated_eyes_from_shared_data_are_refused(extractor):
 def test_followup_video_on_baseline_video(tmp_path):
     """Two synthetic videos of one eye (the follow-up with planted changes, `synth
     --followup-of`), each built into its mosaic by `compare`: the mosaic-to-mosaic transform
-    within 2 px of the truth over the overlap, every change found, at most one false region."""
+    within 2 px of the truth over the overlap, every change found, at most one false region;
+    and the baseline's mosaic against the source photograph aligned as well."""
     base, follow = tmp_path / "base.mp4", tmp_path / "follow.mp4"
     for args in (["-o", str(base), "--seed", "0"],
                  ["-o", str(follow), "--seed", "1", "--followup-of", str(base)]):  # fmt: skip
@@ -207,6 +208,15 @@ def test_followup_video_on_baseline_video(tmp_path):
     assert false <= MAX_FALSE_REGIONS
     assert written["status"] == "registered"
     assert {p.name for p in out.iterdir()} >= {"compare.json", *written["pictures"]}
+
+    # the baseline's mosaic as written (its report beside it) against the source photograph:
+    # a mosaic and a photograph, met at one scale by `compare`; the truth is S_base itself
+    mosaic = out / "baseline_mosaic.png"
+    against_photo, _ = run_compare(mosaic, SAMPLE_IMAGE, tmp_path / "photo", Config())
+    assert alignment_error(against_photo, S_base) < MAX_ERROR_PX
+    assert json.loads((tmp_path / "photo" / "compare.json").read_text())["baseline"]["kind"] == (
+        "mosaic"
+    )
 
 
 def _box(H: np.ndarray, bbox: list[float]) -> list[float]:
