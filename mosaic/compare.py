@@ -69,6 +69,8 @@ MIN_REGION_PX = 25  # smallest region kept, reference px (a quarter of the small
 # change the issue asks for, 10x10 reference px, at twice the threshold: noise blobs of a
 # blurred, noisy visit reach a few hundred; planted changes thousands (docs/compare.md).
 MIN_EXCESS = 100 * CHANGE_SIGMAS
+RESTRICT_BELOW = 0.9  # overlap share under which the pair is registered again, only there
+OVERLAP_MARGIN_PX = 20.0  # that overlap grown by this (matches near its edge)
 MAX_SCALE_CHANGE = 4.0  # visits more than this apart in scale are not the same map
 
 # A photograph against a mosaic: mosaic pixels per photograph pixel tried (a video's frames
@@ -388,14 +390,13 @@ def _pixel_scale(k: float) -> np.ndarray:
     return np.array([[k, 0, 0.5 * k - 0.5], [0, k, 0.5 * k - 0.5], [0, 0, 1.0]])
 
 
-def _resized(visit: Visit, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """The visit's image, black outside its covered area, and that area, resized by `k`."""
-    image = np.where(visit.covered[..., None], visit.image, 0).astype(np.uint8)
+def _resized(image: np.ndarray, mask: np.ndarray, k: float) -> np.ndarray:
+    """The image, black outside `mask`, resized by `k`."""
+    image = np.where(mask[..., None], image, 0).astype(np.uint8)
     if k == 1.0:
-        return image, visit.covered
+        return image
     size = (max(round(image.shape[1] * k), 1), max(round(image.shape[0] * k), 1))
-    covered = cv2.resize(visit.covered.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), covered.astype(bool)
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
 def _scales_to_try(baseline: Visit, followup: Visit, config: Config) -> list[tuple[float, float]]:
@@ -442,11 +443,14 @@ def _align(
     scales: tuple[float, float],
     config: Config,
     extractor: FeatureExtractor,
+    masks: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> _Aligned:
-    """Register the follow-up onto the baseline (each black outside its covered area, resized
-    by `scales` first) and check the answer; `NotComparableError` says why it does not stand."""
-    (fixed, _), (moving, _) = (_resized(v, k) for v, k in zip((baseline, followup), scales,
-                                                               strict=True))  # fmt: skip
+    """Register the follow-up onto the baseline (each black outside its covered area, or
+    `masks`, resized by `scales` first) and check the answer over the whole covered areas;
+    `NotComparableError` says why it does not stand."""
+    masks = masks or (baseline.covered, followup.covered)
+    fixed, moving = (_resized(v.image, m, k) for v, m, k in zip((baseline, followup), masks,
+                                                                 scales, strict=True))  # fmt: skip
     reg = register_pair(fixed, moving, for_photographs(config), extractor, "auto")
     if not reg.ok or reg.H_cur_to_prev is None:
         raise NotComparableError(
@@ -492,6 +496,23 @@ def _align(
     )  # fmt: skip
 
 
+def _overlap_masks(baseline: Visit, followup: Visit, a: _Aligned) -> tuple[np.ndarray, ...]:
+    """Each visit's covered area within `OVERLAP_MARGIN_PX` of the overlap `a` found: the
+    follow-up's through the answer's map of its pixels into the baseline."""
+    margin = max(round(OVERLAP_MARGIN_PX * detail_scale(baseline)), 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
+    near = cv2.dilate(a.overlap.astype(np.uint8), kernel) > 0
+    h, w = followup.image.shape[:2]
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    grid = np.column_stack([gx.ravel(), gy.ravel()])
+    xy = apply_quadratic(a.Q, grid) if a.Q is not None else apply_homography(a.H, grid)
+    ix, iy = np.rint(xy[:, 0]).astype(np.int64), np.rint(xy[:, 1]).astype(np.int64)
+    inside = (ix >= 0) & (iy >= 0) & (ix < near.shape[1]) & (iy < near.shape[0])
+    hit = np.zeros(grid.shape[0], bool)
+    hit[inside] = near[iy[inside], ix[inside]]
+    return baseline.covered & near, followup.covered & hit.reshape(h, w)
+
+
 def compare_visits(
     baseline: Visit, followup: Visit, config: Config, extractor: FeatureExtractor
 ) -> Comparison:
@@ -509,6 +530,12 @@ def compare_visits(
     else:
         assert first is not None
         raise first
+    if a.share < RESTRICT_BELOW:  # again, only where both visits look
+        try:
+            restricted = _overlap_masks(baseline, followup, a)
+            a = _align(baseline, followup, scales, config, extractor, restricted)
+        except NotComparableError as exc:
+            log.info("restricted to the overlap, the registration does not stand: %s", exc)
     scale = detail_scale(baseline)
     change = change_map(a.base_detail, a.follow_detail, a.overlap, scale)
     inverted = next(
