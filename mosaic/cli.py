@@ -793,13 +793,22 @@ def register(
 @app.command()
 def compare(
     baseline: Annotated[
-        Path,
+        Path | None,
         typer.Argument(help="Baseline visit: a video, a mosaic (with its report) or a photograph."),
-    ],
-    followup: Annotated[Path, typer.Argument(help="Follow-up visit: the same kinds.")],
+    ] = None,
+    followup: Annotated[
+        Path | None, typer.Argument(help="Follow-up visit: the same kinds.")
+    ] = None,
     output: Annotated[
         Path, typer.Option("--output", "-o", help="Folder for the pictures and compare.json.")
     ] = Path("compare"),
+    manifest: Annotated[
+        Path | None,
+        typer.Option(
+            help="CSV with columns patient,visit,path: each patient's later visits compared "
+            "onto the first, OUT/<patient>/<visit>/, summary.json and index.html.",
+        ),
+    ] = None,
     config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
     detector: Annotated[str | None, typer.Option(help=f"{', '.join(DETECTORS)}.")] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
@@ -807,10 +816,25 @@ def compare(
     """Put a follow-up visit on the baseline's map: the follow-up warped, a checkerboard, a
     two-colour overlay, a change map and compare.json (H/Q_followup_to_baseline, changed
     regions). Different eyes or no overlap: one line, exit 1."""
-    from mosaic.compare import NotComparableError, run_compare
+    from mosaic.compare import NotComparableError, run_compare, run_manifest
 
     _setup_logging(verbose)
     with _user_errors():
+        if manifest is not None:
+            if baseline or followup:
+                raise InputError("BASELINE and FOLLOWUP, or --manifest: not both")
+            summary = run_manifest(manifest, output, _config(config_path, detector))
+            rows = [r for p in summary["patients"].values() for r in p["visits"]]
+            done = sum(r["status"] == "registered" for r in rows)
+            typer.echo(
+                f"{len(summary['patients'])} patients, {len(rows)} later visits: {done} "
+                f"compared, {len(rows) - done} not\nwritten: {output / 'index.html'}"
+            )
+            if done < len(rows):
+                raise typer.Exit(EXIT_FAILED)
+            return
+        if baseline is None or followup is None:
+            raise InputError("give BASELINE and FOLLOWUP, or --manifest VISITS.csv")
         check_distinct_paths({"--output": output}, {"BASELINE": baseline, "FOLLOWUP": followup})
         try:
             comparison, result = run_compare(

@@ -19,8 +19,11 @@ reported.
 
 from __future__ import annotations
 
+import csv
+import html
 import json
 import logging
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,18 +32,21 @@ import cv2
 import numpy as np
 
 from mosaic.config import Config, for_photographs
-from mosaic.errors import InputError, MosaicError
+from mosaic.errors import InputError, MosaicError, OutputError
 from mosaic.features import FeatureExtractor
 from mosaic.io import (
     IMAGE_READ_SUFFIXES,
+    natural_key,
     read_image,
     write_image,
     write_json,
+    write_text,
 )
 from mosaic.pipeline import register_pair
 from mosaic.preprocess import retina_disc
 from mosaic.refine import fixed_to_moving_map
 from mosaic.registration import apply_homography, apply_quadratic, quadratic_terms
+from mosaic.runner import Outputs, run_video, thumbnail
 
 log = logging.getLogger(__name__)
 
@@ -196,8 +202,6 @@ def load_visit(
         raise InputError(f"{name} not found: {path}")
     suffix = path.suffix.lower()
     if path.is_dir() or suffix in VIDEO_SUFFIXES:
-        from mosaic.runner import Outputs, run_video
-
         mosaic_path = out_dir / f"{name}_mosaic.png"
         outputs = Outputs(mosaic=mosaic_path, report=mosaic_path.with_suffix(".json"))
         log.info("building the %s mosaic of %s", name, path)
@@ -622,24 +626,17 @@ def change_picture(base: np.ndarray, comparison: Comparison) -> np.ndarray:
 PICTURES = ("followup_warped.png", "checkerboard.png", "overlay.png", "change_map.png")
 
 
-def run_compare(
-    baseline_path: Path, followup_path: Path, out_dir: Path, config: Config
-) -> tuple[Comparison, dict[str, Any]]:
-    """`mosaic compare`: both visits loaded (videos built), registered and compared; the
-    pictures and `compare.json` written into `out_dir` (created). A refusal
-    (`NotComparableError`) writes `compare.json` with status "refused" and its reason, then
-    raises."""
-    out_dir = Path(out_dir).expanduser()
+def _make_folder(folder: Path) -> Path:
+    folder = Path(folder).expanduser()
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        from mosaic.errors import OutputError
+        raise OutputError(f"cannot create output folder {folder}: {exc.strerror or exc}") from exc
+    return folder
 
-        raise OutputError(f"cannot create output folder {out_dir}: {exc.strerror or exc}") from exc
-    extractor = FeatureExtractor(config.features)
-    baseline = load_visit(baseline_path, "baseline", out_dir, config, extractor)
-    followup = load_visit(followup_path, "followup", out_dir, config, extractor)
-    inputs = {
+
+def _inputs(*visits: Visit) -> dict[str, Any]:
+    return {
         v.name: {
             "path": str(v.path),
             "kind": v.kind,
@@ -647,13 +644,14 @@ def run_compare(
             "size": [int(v.image.shape[1]), int(v.image.shape[0])],
             "covered_px": int(v.covered.sum()),
         }
-        for v in (baseline, followup)
+        for v in visits
     }
-    try:
-        comparison = compare_visits(baseline, followup, config, extractor)
-    except NotComparableError as exc:
-        write_json(out_dir / "compare.json", {"status": "refused", "reason": str(exc), **inputs})
-        raise
+
+
+def write_comparison(
+    out_dir: Path, baseline: Visit, followup: Visit, comparison: Comparison
+) -> dict[str, Any]:
+    """The pictures and `compare.json` of a comparison, into `out_dir`; the JSON as written."""
     pictures = {
         "followup_warped.png": comparison.warped,
         "checkerboard.png": checkerboard(
@@ -664,6 +662,139 @@ def run_compare(
     }
     for name, picture in pictures.items():
         write_image(out_dir / name, picture)
-    result = {**comparison.to_json(), "pictures": list(pictures), **inputs}
+    result = {**comparison.to_json(), "pictures": list(pictures), **_inputs(baseline, followup)}
     write_json(out_dir / "compare.json", result)
-    return comparison, result
+    return result
+
+
+def run_compare(
+    baseline_path: Path, followup_path: Path, out_dir: Path, config: Config
+) -> tuple[Comparison, dict[str, Any]]:
+    """`mosaic compare`: both visits loaded (videos built), registered and compared; the
+    pictures and `compare.json` written into `out_dir` (created). A refusal
+    (`NotComparableError`) writes `compare.json` with status "refused" and its reason, then
+    raises."""
+    out_dir = _make_folder(out_dir)
+    extractor = FeatureExtractor(config.features)
+    baseline = load_visit(baseline_path, "baseline", out_dir, config, extractor)
+    followup = load_visit(followup_path, "followup", out_dir, config, extractor)
+    try:
+        comparison = compare_visits(baseline, followup, config, extractor)
+    except NotComparableError as exc:
+        refused = {"status": "refused", "reason": str(exc), **_inputs(baseline, followup)}
+        write_json(out_dir / "compare.json", refused)
+        raise
+    return comparison, write_comparison(out_dir, baseline, followup, comparison)
+
+
+# --------------------------------------------------------------------------------------------
+# Many patients: a manifest of visits
+# --------------------------------------------------------------------------------------------
+
+MANIFEST_COLUMNS = ("patient", "visit", "path")
+THUMB_PX = 240  # the index's pictures, longer side
+
+
+def read_manifest(path: Path) -> dict[str, list[tuple[str, Path]]]:
+    """Each patient's (or eye's) visits, earliest first, from a CSV with columns patient,
+    visit, path (paths relative to the CSV; visits ordered as text, naturally: ISO dates
+    `2025-03-01` or numbers `1, 2, 10`)."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise InputError(f"manifest not found: {path}")
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"cannot read manifest {path}: {exc}") from None
+    if not rows or not set(MANIFEST_COLUMNS) <= set(rows[0]):
+        raise InputError(f"{path} must be a CSV with columns {','.join(MANIFEST_COLUMNS)}")
+    patients: dict[str, list[tuple[str, Path]]] = {}
+    for i, row in enumerate(rows):
+        values = [(row.get(c) or "").strip() for c in MANIFEST_COLUMNS]
+        if not all(values):
+            raise InputError(f"{path} row {i + 2}: patient, visit and path must all be given")
+        patients.setdefault(values[0], []).append((values[1], path.parent / values[2]))
+    for patient, visits in patients.items():
+        visits.sort(key=lambda v: natural_key(v[0]))
+        names = [v for v, _ in visits]
+        if len(set(names)) != len(names):
+            raise InputError(f"{path}: patient {patient} has a visit twice")
+    return patients
+
+
+def _safe(name: str) -> str:
+    """A folder name for a patient or visit label."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "_"
+
+
+def run_manifest(manifest: Path, out_dir: Path, config: Config) -> dict[str, Any]:
+    """Each patient's later visits compared onto the first (`OUT/<patient>/<visit>/`, as
+    `mosaic compare` writes them; a video's mosaic into `OUT/<patient>/<visit>/`), a
+    `summary.json` and an `index.html` showing each patient's visits side by side with the
+    change maps. A visit that cannot be loaded or compared is its row's status; the rest go
+    on."""
+    patients = read_manifest(manifest)
+    out_dir = _make_folder(out_dir)
+    extractor = FeatureExtractor(config.features)
+    summary: dict[str, Any] = {"manifest": str(manifest), "patients": {}}
+    for patient, visits in patients.items():
+        folder = _make_folder(out_dir / _safe(patient))
+        (first, first_path), later = visits[0], visits[1:]
+        rows: list[dict[str, Any]] = []
+        summary["patients"][patient] = {"baseline": first, "visits": rows}
+        try:
+            base_dir = _make_folder(folder / _safe(first))
+            baseline = load_visit(first_path, "baseline", base_dir, config, extractor)
+        except MosaicError as exc:
+            rows.extend({"visit": v, "status": "failed", "reason": f"baseline: {exc}"}
+                        for v, _ in later)  # fmt: skip
+            continue
+        write_image(base_dir / "baseline.jpg", thumbnail(baseline.image, THUMB_PX))
+        for visit, visit_path in later:
+            row: dict[str, Any] = {"visit": visit, "folder": f"{_safe(patient)}/{_safe(visit)}"}
+            try:
+                visit_dir = _make_folder(folder / _safe(visit))
+                followup = load_visit(visit_path, "followup", visit_dir, config, extractor)
+                comparison = compare_visits(baseline, followup, config, extractor)
+            except NotComparableError as exc:
+                row.update(status="refused", reason=str(exc))
+            except MosaicError as exc:
+                row.update(status="failed", reason=str(exc))
+            else:
+                written = write_comparison(visit_dir, baseline, followup, comparison)
+                row.update(status="registered", regions=len(written["regions"]),
+                           overlap_share=written["overlap_share"])  # fmt: skip
+                for name in ("followup_warped", "change_map"):
+                    image = cv2.imread(str(visit_dir / f"{name}.png"))
+                    write_image(visit_dir / f"{name}.jpg", thumbnail(image, THUMB_PX))
+            log.info("%s %s: %s", patient, visit, row["status"])
+            rows.append(row)
+    write_json(out_dir / "summary.json", summary)
+    write_text(out_dir / "index.html", _index_html(summary))
+    return summary
+
+
+def _index_html(summary: dict[str, Any]) -> str:
+    """Each patient's row: the first visit, then each later one on its map and its change."""
+    out = ["<!doctype html><meta charset=utf-8><title>mosaic compare</title>",
+           "<style>body{font-family:sans-serif}td{vertical-align:top;padding:4px}"
+           "img{max-width:240px;display:block}</style><h1>Visits compared</h1><table>"]  # fmt: skip
+    for patient, entry in summary["patients"].items():
+        p = html.escape(_safe(patient))
+        cells = [f"<td><b>{html.escape(patient)}</b><br>{html.escape(entry['baseline'])} "
+                 f"(baseline)<img src='{p}/{html.escape(_safe(entry['baseline']))}"
+                 "/baseline.jpg'></td>"]  # fmt: skip
+        for row in entry["visits"]:
+            text = f"{html.escape(row['visit'])}: {row['status']}"
+            if row["status"] == "registered":
+                folder = html.escape(row["folder"])
+                text += (f", {row['regions']} changed region(s)"
+                         f"<img src='{folder}/followup_warped.jpg'>"
+                         f"<img src='{folder}/change_map.jpg'>")  # fmt: skip
+            else:
+                text += f"<br><small>{html.escape(row.get('reason', ''))}</small>"
+            cells.append(f"<td>{text}</td>")
+        out.append("<tr>" + "".join(cells) + "</tr>")
+    out.append("</table>")
+    return "\n".join(out) + "\n"

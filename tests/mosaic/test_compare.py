@@ -5,6 +5,7 @@ into mosaics; unrelated eyes and visits without overlap refused."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -248,3 +249,35 @@ def test_cli_compare_writes_pictures_and_refuses_in_one_line(tmp_path, source):
     assert json.loads((tmp_path / "no" / "compare.json").read_text())["status"] == "refused"
     result = _compare(tmp_path, "nothing.png", "same.png", "x")
     assert result.exit_code == 2 and "not found" in result.output
+
+
+@pytest.mark.slow
+def test_manifest_compares_each_patients_visits_onto_the_first(tmp_path, source):
+    """`compare --manifest`: per patient, later visits onto the earliest (visits ordered by
+    their labels, not by the rows); a refused visit is its row's status, exit 1."""
+    base, follow, _, changes = followup_photograph(source, 0)
+    for name, image in (("base.png", base), ("follow.png", follow),
+                        ("mirror.png", np.ascontiguousarray(base[:, ::-1]))):  # fmt: skip
+        cv2.imwrite(str(tmp_path / name), image)
+    (tmp_path / "visits.csv").write_text(
+        "patient,visit,path\n"
+        "anna OD,2025-06-01,follow.png\n"
+        "anna OD,2024-11-20,base.png\n"
+        "anna OD,2026-01-10,mirror.png\n"
+        "ben OS,2025-01-01,base.png\n"
+    )
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["compare", "--manifest", str(tmp_path / "visits.csv"),
+                                 "-o", str(out)])  # fmt: skip
+    assert result.exit_code == 1, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    anna = summary["patients"]["anna OD"]
+    assert anna["baseline"] == "2024-11-20"
+    assert [(r["visit"], r["status"]) for r in anna["visits"]] == [
+        ("2025-06-01", "registered"), ("2026-01-10", "refused")]  # fmt: skip
+    assert anna["visits"][0]["regions"] >= len(changes) - 1  # two may share one region
+    assert summary["patients"]["ben OS"]["visits"] == []
+    page = (out / "index.html").read_text()
+    for src in re.findall(r"src='([^']+)'", page):
+        assert (out / src).is_file(), src
+    assert "refused" in page
