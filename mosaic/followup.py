@@ -76,7 +76,10 @@ def _pick(score: np.ndarray, allowed: np.ndarray, rng: np.random.Generator,
     """A random (x, y) among the allowed pixels whose score is in its top share."""
     ys, xs = np.nonzero(allowed)
     if xs.size == 0:
-        raise InputError("the two visits share too little retina to plant a change in")
+        raise InputError(
+            "the two visits share too little retina to plant a change in (more frames, or "
+            "another seed, give the two videos more in common)"
+        )
     values = score[ys, xs]
     keep = np.flatnonzero(values >= np.quantile(values, top))
     k = int(rng.choice(keep))

@@ -172,7 +172,6 @@ def test_visits_without_overlap_are_refused(source, extractor):
     _refused(left, right, extractor)
 
 
-@pytest.mark.slow
 def test_unrelated_eyes_from_shared_data_are_refused(extractor):
     folder = SHARED_DATA / "retina" / "train" / "lmc"
     if not folder.is_dir():
@@ -231,6 +230,7 @@ def _compare(folder: Path, baseline: str, followup: str, out: str):
     return runner.invoke(app, ["compare", *args])
 
 
+@pytest.mark.slow
 def test_cli_compare_writes_pictures_and_refuses_in_one_line(tmp_path, source):
     base = cv2.resize(source, None, fx=0.4, fy=0.4, interpolation=cv2.INTER_AREA)
     cv2.imwrite(str(tmp_path / "base.png"), base)
