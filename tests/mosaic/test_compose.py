@@ -425,6 +425,18 @@ def test_multiband_in_its_thread_renders_as_in_order_here(monkeypatch) -> None:
     np.testing.assert_array_equal(_random_canvas().render(), threaded)
 
 
+def test_an_error_in_the_blending_thread_is_raised_to_the_caller(monkeypatch) -> None:
+    """A frame whose pyramid fails in the blending thread fails the caller's next add or
+    render, with the thread's own exception; nothing is swallowed."""
+
+    def broken(self, boxed) -> None:
+        raise MemoryError("no room for the pyramid")
+
+    monkeypatch.setattr("mosaic.blending.LaplacianBlender.add_boxed", broken)
+    with pytest.raises(MemoryError, match="no room for the pyramid"):
+        _random_canvas().render()
+
+
 def test_multiband_renders_strip_by_strip_exactly(monkeypatch) -> None:
     """The collapse by strips (`RENDER_ROWS`, `LaplacianBlender.render_rows`) gives the whole
     canvas' collapse pixel for pixel, whatever the strip's height."""
