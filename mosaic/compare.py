@@ -83,6 +83,10 @@ MAX_SCALE_CHANGE = 4.0  # visits more than this apart in scale are not the same 
 # show the retina at the photograph's scale or magnified, up to ~4x: docs/compare.md)
 MOSAIC_PER_PHOTO_PX = (1.0, 1.5, 2.25, 3.4, 0.67)
 
+# Two mosaics: relative scales tried after 1 (the detector matches within ~1.3x; two videos'
+# magnifications differ by up to 1.8x in `synth --realistic`, more in clinics)
+MOSAIC_SCALE_RATIOS = (1.5, 1 / 1.5, 2.25, 1 / 2.25)
+
 VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv"})
 
 
@@ -404,17 +408,24 @@ def _resized(image: np.ndarray, mask: np.ndarray, k: float) -> np.ndarray:
 
 
 def _scales_to_try(baseline: Visit, followup: Visit, config: Config) -> list[tuple[float, float]]:
-    """(baseline, follow-up) pre-scales to register at: as they are; and, for a photograph of a
+    """(baseline, follow-up) pre-scales to register at: as they are; for a photograph of a
     whole retina against a mosaic (the pair path scales the one by its retina, the other by its
     side, so they meet at one scale only by chance), the mosaic brought to the photograph's
-    working scale for each ratio of `MOSAIC_PER_PHOTO_PX`."""
+    working scale for each ratio of `MOSAIC_PER_PHOTO_PX`; for two mosaics (videos at
+    different magnifications), one shrunk against the other by each of `MOSAIC_SCALE_RATIOS`."""
     tries = [(1.0, 1.0)]
     photos = [v.kind == "photograph" for v in (baseline, followup)]
-    if photos[0] == photos[1]:
+    pre = config.preprocess
+    if photos[0] and photos[1]:
+        return tries  # each scaled by its retina
+    if not photos[0] and not photos[1]:  # two mosaics, each at its own video's magnification
+        w_b, w_f = (min(1.0, pre.max_side_px / max(v.image.shape[:2])) if pre.max_side_px
+                    else 1.0 for v in (baseline, followup))  # fmt: skip
+        for ratio in MOSAIC_SCALE_RATIOS:  # shrink one below the working size, the other kept
+            tries.append((ratio * w_b, 1.0) if ratio < 1 else (1.0, w_f / ratio))
         return tries
     photo = baseline if photos[0] else followup
     disc = retina_disc(photo.image)
-    pre = config.preprocess
     if disc is None or pre.fov_diameter_px <= 0:
         return tries
     s_photo = min(1.0, pre.fov_diameter_px / (2 * disc[2]))
