@@ -281,3 +281,26 @@ def test_manifest_compares_each_patients_visits_onto_the_first(tmp_path, source)
     for src in re.findall(r"src='([^']+)'", page):
         assert (out / src).is_file(), src
     assert "refused" in page
+
+
+@pytest.mark.slow
+def test_mosaics_at_different_magnifications(source, extractor):
+    """Two mosaics of one retina whose videos magnified it 2.3x apart (the central 60 % of the
+    photograph, at 0.35 and 0.8 of its size): found by shrinking one against the other."""
+    n = source.shape[0]
+    crop = source[int(0.2 * n) : int(0.8 * n), int(0.2 * n) : int(0.8 * n)]
+    views, S = [], []
+    for k in (0.35, 0.8):
+        views.append(cv2.resize(crop, None, fx=k, fy=k, interpolation=cv2.INTER_AREA))
+        S.append(np.diag([k, k, 1.0]))
+    visits = [Visit(name, Path(name), "mosaic", v, covered_area(v))
+              for name, v in zip(("baseline", "followup"), views, strict=True)]  # fmt: skip
+    comparison = compare_visits(*visits, Config(), extractor)
+    H_truth = _pixel_scale_truth(0.35) @ np.linalg.inv(_pixel_scale_truth(0.8))
+    assert alignment_error(comparison, H_truth) < MAX_ERROR_PX
+    assert comparison.regions == []
+
+
+def _pixel_scale_truth(k: float) -> np.ndarray:
+    """The map of pixels into an image resized by k (`cv2.resize`: pixel centres)."""
+    return np.array([[k, 0, 0.5 * k - 0.5], [0, k, 0.5 * k - 0.5], [0, 0, 1.0]])
