@@ -17,6 +17,7 @@ border never leaks into the coarse levels.
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -206,6 +207,7 @@ DENOISE_WINDOW_PX = 7  # the band's local energy is its mean square over this wi
 DENOISE_QUIET_PERCENTILE = 10.0  # the noise level: the energy of the mosaic's quietest places ...
 DENOISE_QUIET_SHARE = 0.735  # ... which for noise alone is this share of its variance (measured)
 _DENOISE_HALO = 8  # rows a strip reads beyond its own: 3 sigma of the blur + half the window
+DENOISE_KEEP_BYTES = 64 * 2**20  # the bands kept between the two passes up to this
 
 
 def _band_energy(strip: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -226,7 +228,13 @@ def _band_energy(strip: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray, np.
     return band, cv2.boxFilter(band * band, -1, window) / per_channel(share)
 
 
-def shrink_noise(image: np.ndarray, content: np.ndarray, rows: int = 256) -> np.ndarray:
+def shrink_noise(
+    image: np.ndarray,
+    content: np.ndarray,
+    rows: int = 256,
+    threads: int = 1,
+    keep_bytes: int = DENOISE_KEEP_BYTES,
+) -> np.ndarray:
     """The mosaic (uint8 HxW[xC]) with the noise its frames left shrunk: its finest band
     (`DENOISE_SIGMA_PX`) multiplied by the local Wiener gain max(0, 1 - noise² / energy).
     Where vessels and edges make the band's local energy well above the noise they stay as they
@@ -234,26 +242,40 @@ def shrink_noise(image: np.ndarray, content: np.ndarray, rows: int = 256) -> np.
     pixels are finer than its optics) it is smoothed. The noise level (per channel) is read
     from the quietest places of the `content` (bool HxW): the 10th percentile of the energy, so
     that a texture covering the whole mosaic (an adaptive-optics or SLO view of photoreceptors)
-    is not taken for noise, as a median over all places would. In strips of `rows` rows: no
-    float image of the whole mosaic."""
+    is not taken for noise, as a median over all places would. In strips of `rows` rows,
+    `threads` at a time; the strips' bands are kept from the noise estimate for the
+    smoothing when they take at most `keep_bytes` (else made again): no float image of a
+    large mosaic."""
     h = image.shape[0]
     if not content.any():
         return image
+    starts = range(0, h, rows)
+    kept = 8 * image.size <= keep_bytes  # the band and its energy, float32
 
-    def strips():
-        for r0 in range(0, h, rows):
-            r1 = min(r0 + rows, h)
-            a, b = max(r0 - _DENOISE_HALO, 0), min(r1 + _DENOISE_HALO, h)
-            band, energy = _band_energy(image[a:b], content[a:b])
-            yield r0, r1, band[r0 - a : r1 - a], energy[r0 - a : r1 - a]
+    def strip(r0: int) -> tuple[np.ndarray, np.ndarray]:
+        r1 = min(r0 + rows, h)
+        a, b = max(r0 - _DENOISE_HALO, 0), min(r1 + _DENOISE_HALO, h)
+        band, energy = _band_energy(image[a:b], content[a:b])
+        return band[r0 - a : r1 - a], energy[r0 - a : r1 - a]
 
-    samples = [energy[::4][content[r0:r1:4]] for r0, r1, _, energy in strips()]  # every 4th row
-    quiet = np.percentile(np.concatenate(samples), DENOISE_QUIET_PERCENTILE, axis=0)
-    noise2 = quiet / DENOISE_QUIET_SHARE
+    def sampled(r0: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        band, energy = strip(r0)
+        sample = energy[::4][content[r0 : r0 + rows : 4]]  # every 4th row
+        return sample, (band, energy) if kept else None
+
     out = image.copy()
-    for r0, r1, band, energy in strips():
-        gain = np.clip(1.0 - noise2 / np.maximum(energy, 1e-6), 0.0, 1.0)
-        smoothed = np.rint(image[r0:r1].astype(np.float32) - band * (1.0 - gain))
-        inside = content[r0:r1][..., None] if image.ndim == 3 else content[r0:r1]
-        np.copyto(out[r0:r1], np.clip(smoothed, 0, 255).astype(np.uint8), where=inside)
+    with ThreadPoolExecutor(threads, thread_name_prefix="denoise") as pool:
+        samples, bands = zip(*pool.map(sampled, starts), strict=True)
+        quiet = np.percentile(np.concatenate(samples), DENOISE_QUIET_PERCENTILE, axis=0)
+        noise2 = quiet / DENOISE_QUIET_SHARE
+
+        def smooth(r0: int, made: tuple[np.ndarray, np.ndarray] | None) -> None:
+            band, energy = made if made is not None else strip(r0)
+            r1 = r0 + len(band)
+            gain = np.clip(1.0 - noise2 / np.maximum(energy, 1e-6), 0.0, 1.0)
+            smoothed = np.rint(image[r0:r1].astype(np.float32) - band * (1.0 - gain))
+            inside = content[r0:r1][..., None] if image.ndim == 3 else content[r0:r1]
+            np.copyto(out[r0:r1], np.clip(smoothed, 0, 255).astype(np.uint8), where=inside)
+
+        list(pool.map(smooth, starts, bands))
     return out

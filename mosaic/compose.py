@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import threading
 from collections import deque
 from collections.abc import Callable, Container, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -81,6 +82,7 @@ MULTIBAND_LEVELS = 5  # Laplacian levels: seams are smoothed over ~2^5 = 32 px
 # then ~0.55 GB, docs/compose.md) feathers instead (19 bytes a pixel), with a warning
 MULTIBAND_MAX_BYTES = 256 * 2**20
 RENDER_ROWS = 256  # rows of a strip of `Canvas.render`
+PICTURE_THREADS = 2  # strips of the picture (render, denoise) made at once
 # frames whose multiband pyramids may wait for the canvas' blending thread (each a copy of the
 # frame's box: ~6 MB at 660x350, ~45 MB at 1920x1080)
 BLEND_AHEAD = 1
@@ -216,9 +218,14 @@ class Canvas:
         self.flush()
         sum_c, weight_c = self._content_views()
         out = np.zeros(sum_c.shape, np.uint8)
-        for r0 in range(0, out.shape[0], RENDER_ROWS):
+
+        def strip(r0: int) -> None:
             r1 = min(r0 + RENDER_ROWS, out.shape[0])
             out[r0:r1] = self._render_rows(sum_c[r0:r1], weight_c[r0:r1], r0)
+
+        # the strips are independent: two at a time (OpenCV and numpy release the GIL)
+        with ThreadPoolExecutor(PICTURE_THREADS, thread_name_prefix="render") as pool:
+            list(pool.map(strip, range(0, out.shape[0], RENDER_ROWS)))
         return out
 
     def flush(self) -> None:
@@ -236,7 +243,7 @@ class Canvas:
         image = self.render()
         if not self._config.denoise:
             return image
-        return shrink_noise(image, self.coverage() > 0, RENDER_ROWS)
+        return shrink_noise(image, self.coverage() > 0, RENDER_ROWS, PICTURE_THREADS)
 
     def _render_rows(self, sum_c: np.ndarray, weight_c: np.ndarray, r0: int) -> np.ndarray:
         """uint8 rows of `render` from the content's rows r0 .. r0 + len(`sum_c`)."""
@@ -847,6 +854,68 @@ def _mean(image: np.ndarray) -> np.ndarray:
 FrameSource = Callable[[], Iterable[tuple[int, np.ndarray, np.ndarray]]]
 _Read = tuple[int, np.ndarray, np.ndarray, FrameQuality | None]  # a frame, its mask, quality
 BeforeAdd = Callable[[int, Canvas, np.ndarray, np.ndarray, np.ndarray], None]
+
+
+class ReadAhead:
+    """A `FrameSource` whose first reading starts when it is made, in a thread of its own: the
+    re-render's frames are decoded and masked while the pose graph is solved (which needs
+    neither). Up to `keep_bytes` of frames (image and mask) wait to be taken, in order; the
+    first call takes them, a later call reads afresh. `close` stops the thread."""
+
+    def __init__(self, frames: FrameSource, keep_bytes: int = RERENDER_KEEP_BYTES) -> None:
+        self._frames = frames
+        self._keep_bytes = keep_bytes
+        self._held: deque[tuple[int, np.ndarray, np.ndarray]] = deque()
+        self._bytes = 0
+        self._done = self._stop = self._taken = False
+        self._error: BaseException | None = None
+        self._changed = threading.Condition()
+        self._thread = threading.Thread(target=self._read, name="read-ahead", daemon=True)
+        self._thread.start()
+
+    def __call__(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        if self._taken:
+            return iter(self._frames())
+        self._taken = True
+        return self._take()
+
+    def close(self) -> None:
+        with self._changed:
+            self._stop = True
+            self._changed.notify_all()
+        self._thread.join()
+
+    def _read(self) -> None:
+        try:
+            for item in self._frames():
+                with self._changed:
+                    while self._bytes >= self._keep_bytes and not self._stop:
+                        self._changed.wait()
+                    if self._stop:
+                        return
+                    self._held.append(item)
+                    self._bytes += item[1].nbytes + item[2].nbytes
+                    self._changed.notify_all()
+        except BaseException as exc:  # re-raised where the frame would have been read
+            self._error = exc
+        finally:
+            with self._changed:
+                self._done = True
+                self._changed.notify_all()
+
+    def _take(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        while True:
+            with self._changed:
+                while not self._held and not self._done:
+                    self._changed.wait()
+                if not self._held:
+                    if self._error is not None:
+                        raise self._error
+                    return
+                item = self._held.popleft()
+                self._bytes -= item[1].nbytes + item[2].nbytes
+                self._changed.notify_all()
+            yield item
 
 
 def footprint_box(H: np.ndarray, shape: tuple[int, int]) -> tuple[int, int, int, int]:

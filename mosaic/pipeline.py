@@ -28,7 +28,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mosaic.compose import Canvas, LiveCompositor, photometry_report, render_segments
+from mosaic.compose import (
+    Canvas,
+    FrameSource,
+    LiveCompositor,
+    ReadAhead,
+    photometry_report,
+    render_segments,
+)
 from mosaic.config import Config, config_to_dict
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features, to_frame_pixels
@@ -89,6 +96,10 @@ class FrameRecord:
     reflexes: bool = False  # lens reflexes left out of it (`[preprocess] reflex_mask`)
     lens_rim: Circle | None = None  # (cx, cy, r) px of a handheld lens's rim, outside which
     # nothing of it was used (`[preprocess] lens_rim_mask`)
+    blurred: str | None = None  # too blurred to blend (the gate's reason): registered all the
+    # same where it can be, and left out of the mosaic (`[gating] blurred = "track"`)
+    by_flow: bool = False  # placed by optical flow from its predecessor (`[registration]
+    # flow_fallback`): no descriptors registered it
     stage_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -426,7 +437,8 @@ class MosaicBuilder:
         image, record.deinterlaced = timer.run("preprocess", self._fields, image)
         work, S = timer.run("preprocess", self._working_size, image)
         prepared = timer.run("preprocess", prepare, work, self.config.preprocess)
-        gate_reason = self._gate(prepared)  # before overlay masking: sharpness of the whole view
+        gate = self._gate(prepared)  # before overlay masking: sharpness of the whole view
+        record.blurred = gate.blurred
         prepared = timer.run("preprocess", self._overlay, work, prepared)
         prepared = timer.run("preprocess", self._rim, work, prepared)
         if self._rim.found is not None:  # kept for the re-render: left out there too
@@ -436,8 +448,8 @@ class MosaicBuilder:
         if self._reflexes.found is not None:  # kept for the re-render: left out there too
             self._reflex_spots[index] = self._reflexes.found
             record.reflexes = True
-        if gate_reason is not None:
-            return Extracted(record, image, prepared, skip=gate_reason, H_frame_to_work=S)
+        if gate.skip is not None:
+            return Extracted(record, image, prepared, skip=gate.skip, H_frame_to_work=S)
         self._turns.before_detect()
         detected = timer.run("detect", self.extractor.detect, prepared)
         self._turns.detected()
@@ -499,6 +511,8 @@ class MosaicBuilder:
         reason = track.reason
         if reason is None:
             reason = self._place(segment, record, image, prepared, features, track, timer)
+        if reason is not None and record.blurred is not None:  # as before it was tracked
+            return self._skip(record, f"{record.blurred}; not registered: {reason}", image, prepared)
         if reason is not None:
             self._fail(record, image, prepared, features, timer, reason)
             if self.config.pipeline.on_failure == "skip":
@@ -566,6 +580,11 @@ class MosaicBuilder:
         """Put the frame on the canvas and let the tracker take it; or say why not."""
         assert track.H_frame_to_ref is not None
         H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
+        if record.blurred is not None:  # registered, kept out of the blend
+            segment.tracker.commit(record.index, features, prepared.gray.shape, track)
+            record.status, record.H_frame_to_ref, record.segment = REGISTERED, H_frame_to_ref, segment.index
+            segment.records.append(record)
+            return None
         mask = self._frame_mask(prepared, image)
         # the video's side bands and vignetting, from the frames placed so far
         timer.run("compose", self._photometry.observe, image, mask)
@@ -783,22 +802,11 @@ class MosaicBuilder:
             for record in segment.records:
                 record.segment = number
 
-    def _rerender(self, reread: Reread) -> None:
-        """Render refined segments again from the video: one or two more passes over its
-        frames (`compose.render_segments`), with the whole video's overlay, side-band and
-        flat-field estimates. Later segments the camera came back from are rendered into the
-        first (`_joined_poses`); they join it only where that rendering succeeds."""
-        joined, self._joins = self._joined_poses(), []
-        todo = {
-            s.index: s
-            for s in self._segments
-            if s.refined_poses and s.records and s.index not in joined
-        }
-        poses = {k: dict(s.refined_poses or {}) for k, s in todo.items()}
-        for later in joined.values():
-            poses[0].update(later)
-        owner = {r.index for s in todo.values() for r in s.records}
-        owner.update(index for later in joined.values() for index in later)
+    def _masked_frames(self, reread: Reread) -> FrameSource:
+        """The registered frames read again, (index, image, mask), with the whole video's
+        overlay, side-band and flat-field estimates (refreshed here): what the re-render
+        reads. Independent of the poses, so it can read while they are refined."""
+        registered = {r.index for r in self.records if r.status == REGISTERED}
         interlaced = {r.index for r in self.records if r.deinterlaced}
         self._photometry.refresh()
         # only the field-of-view mask of `prepare` is needed here
@@ -806,7 +814,7 @@ class MosaicBuilder:
 
         def frames() -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
             for index, image in reread():
-                if index not in owner or image is None:
+                if index not in registered or image is None:
                     continue
                 if index in interlaced:  # the frame as it was registered
                     image = first_field(image)
@@ -821,6 +829,28 @@ class MosaicBuilder:
                     prepared = Prepared(prepared.gray, mask)
                 yield index, image, self._photometry.frame_mask(self._frame_mask(prepared, image))
 
+        return frames
+
+    def _rerender(self, frames: FrameSource) -> None:
+        """Render refined segments again from the video's registered frames (`frames`,
+        `_masked_frames`): one or two more passes over them (`compose.render_segments`).
+        Later segments the camera came back from are rendered into the first
+        (`_joined_poses`); they join it only where that rendering succeeds."""
+        joined, self._joins = self._joined_poses(), []
+        todo = {
+            s.index: s
+            for s in self._segments
+            if s.refined_poses and s.records and s.index not in joined
+        }
+        poses = {k: dict(s.refined_poses or {}) for k, s in todo.items()}
+        for later in joined.values():
+            poses[0].update(later)
+        owner = {r.index for s in todo.values() for r in s.records}
+        owner.update(index for later in joined.values() for index in later)
+
+        def owned() -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+            return ((index, image, mask) for index, image, mask in frames() if index in owner)
+
         quality: dict[int, float] = {}  # of the refined poses, against the re-rendered mosaic
 
         def score(
@@ -829,7 +859,7 @@ class MosaicBuilder:
             if canvas.n_frames:
                 quality[index] = frame_vs_canvas(canvas, image, H, mask)
 
-        rendered = render_segments(self.config.compose, frames, poses, self._photometry, score)
+        rendered = render_segments(self.config.compose, owned, poses, self._photometry, score)
         for k, result in rendered.items():
             segment, canvas = todo[k], result.canvas
             expected = len(segment.records)
@@ -861,10 +891,17 @@ class MosaicBuilder:
                 self._fields.median_offset_px,
             )
         if not interrupted:
-            for segment in self._segments:
-                self._refine(segment)
+            ahead = None  # the frames read (decoded, masked) while the poses are refined
             if reread is not None and self.config.keyframes.rerender:
-                self._rerender(reread)
+                ahead = ReadAhead(self._masked_frames(reread))
+            try:
+                for segment in self._segments:
+                    self._refine(segment)
+                if ahead is not None:
+                    self._rerender(ahead)
+            finally:
+                if ahead is not None:
+                    ahead.close()
         result = self.snapshot(interrupted)
         self.viewer.finish(result.report, result.main.image if result.main is not None else None)
         return result
@@ -923,6 +960,7 @@ def _note_registration(record: FrameRecord, track: Track) -> None:
     record.model = registration.model
     record.coverage = registration.coverage
     record.reference = track.reference_index
+    record.by_flow = track.by_flow
 
 
 def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict[str, Any]:
@@ -946,6 +984,9 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict
         "deinterlaced": record.deinterlaced,
         "reflexes": record.reflexes,
         "lens_rim": None if record.lens_rim is None else [round(v, 1) for v in record.lens_rim],
+        "blurred": record.blurred is not None,
+        "blended": record.status == REGISTERED and record.blurred is None,
+        "by_flow": record.by_flow,
         "gain": None if record.gain is None else round(record.gain, 4),
         "time_ms": round(record.time_ms, 2),
     }
@@ -968,7 +1009,8 @@ def _tracking_summary(builder: MosaicBuilder) -> dict[str, Any]:
     """Keyframes, relocalisations, loop closures and refinement residuals over all segments."""
     per_segment = [s.tracker.stats() for s in builder._segments] + builder._joined_stats
     totals: dict[str, Any] = {}
-    counted = ("keyframes", "relocalised", "placed_by_previous", "loop_closures", "loop_attempts")
+    counted = ("keyframes", "relocalised", "placed_by_previous", "placed_by_flow", "loop_closures",
+               "loop_attempts")  # fmt: skip
     for key in (*counted, "extra_links", "tracked_registrations", "perspective_relaxed"):
         values = [stats[key] for stats in per_segment if key in stats]
         if values:
@@ -1015,6 +1057,7 @@ def build_report(
         "deinterlaced": sum(r.deinterlaced for r in records),
         "reflex_frames": sum(r.reflexes for r in records),
         "lens_rim_frames": sum(r.lens_rim is not None for r in records),
+        "blurred_registered": sum(r.blurred is not None for r in records if r.status == REGISTERED),
         "field_offset_px": None
         if builder._fields.median_offset_px is None
         else round(builder._fields.median_offset_px, 2),

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic.compose import Canvas
+from mosaic.compose import PICTURE_THREADS, Canvas
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
 from mosaic.preprocess import scale_matrix
@@ -497,8 +497,9 @@ def test_render_needs_no_float_image_of_the_whole_canvas(blend: str) -> None:
         tracemalloc.stop()
     assert image.shape == (1600, 2400, 3)
     strip = 2400 * 256 * 4 * 3  # one float32 strip of RENDER_ROWS rows
-    # measured: the image + 3.4 strips (multiband), + 1.3 (feather); before: + 25.5 and 6.8
-    assert peak < image.nbytes + 5 * strip, (peak - image.nbytes) / strip
+    # measured: the image + 3.4 strips (multiband), + 1.3 (feather) one strip at a time, + 6.7
+    # (multiband) two at a time (PICTURE_THREADS = 2); before the strips: + 25.5 and 6.8
+    assert peak < image.nbytes + 4 * PICTURE_THREADS * strip, (peak - image.nbytes) / strip
 
 
 def _noisy_vessels(sigma: float = 6.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -521,7 +522,7 @@ def test_shrink_noise_smooths_the_noise_and_keeps_the_vessels():
     """The noise blending left (sigma 6 here) is more than halved and a vessel keeps its
     contrast to within 8 %: both better than a Gaussian blur of the band's sigma (rms 2.78,
     contrast -9 %; measured 2.70 and -6 %). The empty canvas stays empty, and the strips add up
-    to the whole."""
+    to the whole, made two at a time or with their bands made again."""
     from mosaic.blending import shrink_noise
 
     image, clean, content = _noisy_vessels()
@@ -538,6 +539,7 @@ def test_shrink_noise_smooths_the_noise_and_keeps_the_vessels():
     assert abs(contrast[1] / truth - 1) < 0.08 and contrast[1] > contrast[2], (contrast, truth)
     assert out[~content].max() == 0
     np.testing.assert_array_equal(out, shrink_noise(image, content, rows=10_000))
+    np.testing.assert_array_equal(out, shrink_noise(image, content, 64, 2, keep_bytes=0))
 
 
 def test_canvas_picture_is_the_render_denoised_only_when_asked():
@@ -580,3 +582,45 @@ def test_shrink_noise_reads_the_noise_where_the_mosaic_is_quiet():
 
     assert rms(out, textured) <= rms(noisy, textured)
     assert rms(out, quiet) < 0.5 * rms(noisy, quiet)
+
+
+def test_read_ahead_reads_before_it_is_called_and_gives_the_frames_in_order():
+    """`ReadAhead` reads in its thread from the moment it is made, holds at most about
+    `keep_bytes` of frames (one more frame while it waits), gives them in order to its first
+    call, reads afresh for a later one, and raises the reader's error where the frame failed."""
+    import threading
+    import time
+
+    from mosaic.compose import ReadAhead
+
+    read: list[int] = []
+    more = threading.Event()
+
+    def frames():
+        for index in range(10):
+            if index == 3:
+                more.wait(5.0)
+            read.append(index)
+            yield index, np.full((4, 5, 3), index, np.uint8), np.full((4, 5), 255, np.uint8)
+
+    ahead = ReadAhead(frames, keep_bytes=2 * 80)  # two frames (60 + 20 bytes each)
+    deadline = time.monotonic() + 5.0
+    while len(read) < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert read == [0, 1, 2]  # read before the call; the third waits for room
+    more.set()
+    got = [(i, int(image[0, 0, 0])) for i, image, _ in ahead()]
+    assert got == [(i, i) for i in range(10)]
+    assert [i for i, _, _ in ahead()] == list(range(10))  # afresh: all read again
+    ahead.close()
+
+    def broken():
+        yield 0, np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2), np.uint8)
+        raise ValueError("cannot decode frame 1")
+
+    failing = ReadAhead(broken)
+    taken = failing()
+    assert next(taken)[0] == 0
+    with pytest.raises(ValueError, match="frame 1"):
+        next(taken)
+    failing.close()
