@@ -105,6 +105,8 @@ class RegistrationConfig:
     # the corners): the matches set the perspective where they span the frame; 0 = pure model
     track_window_px: int = 31  # video: re-localise each registration's inliers by pyramidal
     # Lucas-Kanade in windows of this side on the band-passed frames, then refit (0: off)
+    flow_fallback: bool = True  # video, keyframes: a frame no descriptors register is placed by
+    # optical flow from its predecessor (motion prior, forward-backward check, same rules)
     refine_levels: int = 3  # `mosaic register`: coarse-to-fine levels from the working size up to
     # the photographs' pixels (template matching around each inlier, robust refit; 0: off)
 
@@ -174,6 +176,8 @@ class GatingConfig:
 
     enabled: bool = True
     min_sharpness_ratio: float = 0.3  # Laplacian variance below this x the recent median: blurred
+    blurred: str = "track"  # a blurred frame is registered and keeps the chain, but is left out
+    # of the blend (track), or skipped before detection (skip)
     min_fov_fraction: float = 0.15  # fraction of the frame inside the field of view
 
 
@@ -193,6 +197,7 @@ class Config:
 
 CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
     ("features", "descriptor"): ("rootsift", "native"),
+    ("gating", "blurred"): ("track", "skip"),
     ("features", "device"): ("cpu", "cuda"),
     ("features", "precision"): ("float32", "bfloat16", "auto"),
     ("registration", "method"): (

@@ -512,7 +512,9 @@ class MosaicBuilder:
         if reason is None:
             reason = self._place(segment, record, image, prepared, features, track, timer)
         if reason is not None and record.blurred is not None:  # as before it was tracked
-            return self._skip(record, f"{record.blurred}; not registered: {reason}", image, prepared)
+            return self._skip(
+                record, f"{record.blurred}; not registered: {reason}", image, prepared
+            )
         if reason is not None:
             self._fail(record, image, prepared, features, timer, reason)
             if self.config.pipeline.on_failure == "skip":
@@ -582,7 +584,11 @@ class MosaicBuilder:
         H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
         if record.blurred is not None:  # registered, kept out of the blend
             segment.tracker.commit(record.index, features, prepared.gray.shape, track)
-            record.status, record.H_frame_to_ref, record.segment = REGISTERED, H_frame_to_ref, segment.index
+            record.status, record.H_frame_to_ref, record.segment = (
+                REGISTERED,
+                H_frame_to_ref,
+                segment.index,
+            )
             segment.records.append(record)
             return None
         mask = self._frame_mask(prepared, image)
@@ -847,6 +853,7 @@ class MosaicBuilder:
             poses[0].update(later)
         owner = {r.index for s in todo.values() for r in s.records}
         owner.update(index for later in joined.values() for index in later)
+        owner -= {r.index for r in self.records if r.blurred is not None}  # not blended
 
         def owned() -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
             return ((index, image, mask) for index, image, mask in frames() if index in owner)
@@ -862,9 +869,9 @@ class MosaicBuilder:
         rendered = render_segments(self.config.compose, owned, poses, self._photometry, score)
         for k, result in rendered.items():
             segment, canvas = todo[k], result.canvas
-            expected = len(segment.records)
+            expected = sum(r.index in owner for r in segment.records)
             if k == 0:
-                expected += sum(len(later) for later in joined.values())
+                expected += sum(index in owner for later in joined.values() for index in later)
             if canvas.n_frames != expected:
                 log.warning("segment %d not re-rendered: the input changed on re-reading", k)
                 continue

@@ -715,8 +715,17 @@ class Spots:
         return out
 
 
+@dataclass(frozen=True)
+class Gate:
+    """The gate's verdict on a frame: why to skip it, or why it is too blurred to blend."""
+
+    skip: str | None = None
+    blurred: str | None = None  # registered all the same (`[gating] blurred = "track"`)
+
+
 class FrameGate:
-    """Skips frames not worth registering: too blurred (relative to recent frames) or too dark.
+    """Skips frames not worth registering (too little field of view) and finds those too
+    blurred to blend (relative to recent frames): skipped too, or only kept out of the blend.
 
     Blur is judged against the median sharpness of recent accepted frames, not an absolute
     threshold, so the same setting works across cameras, resolutions and contrast.
@@ -729,23 +738,27 @@ class FrameGate:
         self._config = config
         self._recent: deque[float] = deque(maxlen=self.HISTORY)
 
-    def __call__(self, prepared: Prepared) -> str | None:
-        """Why the frame should be skipped, or None to process it."""
+    def __call__(self, prepared: Prepared) -> Gate:
+        """Whether to skip the frame, or to register it without blending it."""
         if not self._config.enabled:
-            return None
+            return Gate()
         fov = float(np.count_nonzero(prepared.mask)) / prepared.mask.size
         if fov < self._config.min_fov_fraction:
-            return f"too little field of view ({fov:.0%} < {self._config.min_fov_fraction:.0%})"
+            limit = self._config.min_fov_fraction
+            return Gate(skip=f"too little field of view ({fov:.0%} < {limit:.0%})")
         value = sharpness(prepared)
         if len(self._recent) >= self.MIN_HISTORY:
             median = float(np.median(self._recent))
             if value < self._config.min_sharpness_ratio * median:
-                return (
+                reason = (
                     f"too blurred (sharpness {value:.0f} < {self._config.min_sharpness_ratio}"
                     f" x recent median {median:.0f})"
                 )
+                if self._config.blurred == "skip":
+                    return Gate(skip=reason)
+                return Gate(blurred=reason)
         self._recent.append(value)
-        return None
+        return Gate()
 
 
 # --------------------------------------------------------------------------------------------

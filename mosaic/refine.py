@@ -128,6 +128,62 @@ def track_points(
     return found, ok
 
 
+FLOW_LEVELS = 3  # pyramid levels for `flow_points`: the motion prior may be ~100 px off
+FLOW_BACK_PX = 1.0  # a point tracked there and back must return this close to its start
+
+
+def flow_points(
+    moving: np.ndarray, fixed: np.ndarray, xy: np.ndarray, xy_pred: np.ndarray, window_px: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where points (N, 2) of `moving` lie in `fixed` (two `lk_texture`s), by pyramidal
+    Lucas-Kanade over FLOW_LEVELS levels from a prediction that may be far off (a motion
+    prior, where matching failed), kept where tracking back returns within FLOW_BACK_PX: the
+    forward-backward check stands in for the descriptors that found no consensus."""
+    if len(xy) == 0:
+        return xy_pred.astype(np.float32), np.zeros(0, bool)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.01)
+    start = xy.astype(np.float32).reshape(-1, 1, 2)
+    found, status, _ = cv2.calcOpticalFlowPyrLK(
+        moving, fixed, start, xy_pred.astype(np.float32).reshape(-1, 1, 2).copy(),
+        winSize=(window_px, window_px), maxLevel=FLOW_LEVELS, criteria=criteria,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )  # fmt: skip
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(
+        fixed, moving, found, start.copy(), winSize=(window_px, window_px),
+        maxLevel=FLOW_LEVELS, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )  # fmt: skip
+    found = found.reshape(-1, 2)
+    ok = status.ravel().astype(bool) & status_back.ravel().astype(bool)
+    ok &= np.isfinite(found).all(1) & np.isfinite(back.reshape(-1, 2)).all(1)
+    ok &= np.linalg.norm(back.reshape(-1, 2) - xy, axis=1) < FLOW_BACK_PX
+    return found, ok
+
+
+AGREEMENT_SCALE = 0.5  # `texture_agreement` is computed at this scale (the band-pass is coarse)
+
+
+def texture_agreement(
+    fixed: np.ndarray, moving: np.ndarray, H_moving_to_fixed: np.ndarray
+) -> float:
+    """Normalised cross-correlation of two `lk_texture`s where both see retina, `fixed`
+    sampled at `H_moving_to_fixed` of `moving`'s pixels: near 0 for a wrong placement or
+    noise, towards 1 for a right one on a sharp view."""
+    s = AGREEMENT_SCALE
+    S = np.diag([s, s, 1.0])
+    small = [cv2.resize(t, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) for t in (fixed, moving)]
+    h, w = small[1].shape
+    warped = cv2.warpPerspective(
+        small[0], S @ H_moving_to_fixed @ np.linalg.inv(S), (w, h),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=128,
+    )  # fmt: skip
+    a, b = warped.astype(np.float32) - 128.0, small[1].astype(np.float32) - 128.0
+    both = (a != 0) & (b != 0)  # flat 128: outside the view (`lk_texture`)
+    if both.sum() < 100:
+        return 0.0
+    a, b = a[both], b[both]
+    return float((a * b).sum() / (np.sqrt((a * a).sum() * (b * b).sum()) + 1e-6))
+
+
 @dataclass(frozen=True)
 class Refined:
     """The transform after refinement, and its matches at full resolution."""

@@ -31,13 +31,18 @@ from mosaic.config import Config
 from mosaic.features import Features
 from mosaic.matching import Matches, match_descriptors
 from mosaic.posegraph import Constraint, Refinement, refine_poses, refine_tilted_poses
-from mosaic.refine import track_points
+from mosaic.refine import flow_points, texture_agreement, track_points
 from mosaic.registration import Registration, estimate_motion, perspective_needed
 
 log = logging.getLogger(__name__)
 
 Timed = Callable[..., Any]  # timer.run(stage, fn, *args)
 TRACK_MAX_POINTS = 100  # inliers re-localised per registration (more add cost, not precision)
+FLOW_MAX_POINTS = 300  # the predecessor's keypoints followed by flow where matching failed
+FLOW_MIN_AGREEMENT = 0.4  # NCC of the two band-passed frames at the flow's placement: at the
+# true placement 0.5-0.98 on textured realistic video, ~0.2 where noise dominates (there flow
+# stays near its prior both ways, and a wrong placement scores as well as the right one)
+FLOW_PEAK_PX = 3.0  # ... and higher there than with the placement shifted this far each way
 
 
 @dataclass(frozen=True)
@@ -52,6 +57,7 @@ class Track:
     relocalised: bool = False
     attempts: int = 0
     reference_index: int | None = None  # input frame index of the reference
+    by_flow: bool = False  # placed by optical flow from the predecessor (`_by_flow`)
     previous: Registration | None = None  # the frame against its predecessor (keyframes)
     previous_matches: Matches | None = None
     # registrations to other keyframes than the chosen one: (keyframe's frame index, it)
@@ -306,6 +312,7 @@ class _Counters:
     loop_closures: int = 0
     loop_attempts: int = 0
     extra_links: int = 0  # frames' registrations to keyframes besides their reference
+    by_flow: int = 0  # frames no descriptors registered, placed by flow from the predecessor
     refinement: dict[str, float] = field(default_factory=dict)
 
 
@@ -332,6 +339,7 @@ class KeyframeTracker:
         self._constraints: list[Constraint] = []
         self._prev: tuple[int, Features] | None = None  # the last committed frame
         self._last_pose: np.ndarray | None = None
+        self._step: np.ndarray | None = None  # H_prev_to_prevprev of the last two committed
         self._counters = _Counters()
         self._lost = False  # the last frame failed against every candidate
         self._lost_cursor = 0
@@ -454,9 +462,55 @@ class KeyframeTracker:
                 reference_index=self._prev[0],
                 **extra,
             )
+        flowed = self._by_flow(features, shape, timer)
+        if flowed is not None:
+            self._lost = False
+            return dataclasses.replace(flowed, **extra)
         self._lost = True
         assert first is not None
         return dataclasses.replace(first, **extra)
+
+    def _by_flow(self, features: Features, shape: tuple[int, int], timer: Any) -> Track | None:
+        """A frame no keyframe nor its predecessor registers by descriptors (motion blur, a
+        fast jump, a hazy view) placed by following the predecessor's keypoints into it with
+        optical flow (`refine.flow_points`), from where the last step's motion predicts them;
+        the model is fitted to the points that track there and back, under the same failure
+        rules. It then becomes a keyframe, so the chain goes on through it."""
+        registration_config = self._config.registration
+        if not registration_config.flow_fallback or self._prev is None:
+            return None
+        prev_index, prev = self._prev
+        if prev.texture is None or features.texture is None or len(prev.xy) == 0:
+            return None
+        xy_prev = prev.xy
+        if len(xy_prev) > FLOW_MAX_POINTS:  # evenly through the list: spread over the frame
+            xy_prev = xy_prev[np.linspace(0, len(xy_prev) - 1, FLOW_MAX_POINTS).round().astype(int)]
+        H_cur_to_prev = np.eye(3) if self._step is None else self._step  # constant velocity
+        pred = project(np.linalg.inv(H_cur_to_prev), xy_prev.astype(np.float64))
+        window = registration_config.track_window_px or 31
+        found, ok = timer.run(
+            "estimate", flow_points, prev.texture, features.texture, xy_prev, pred, window
+        )
+        if ok.sum() < registration_config.min_inliers:
+            return None
+        registration = timer.run(
+            "estimate", estimate_motion, found[ok], xy_prev[ok], registration_config, shape
+        )
+        if not registration.ok:
+            return None
+        assert registration.H_cur_to_prev is not None
+        agreement = texture_agreement(prev.texture, features.texture, registration.H_cur_to_prev)
+        log.info(
+            "flow from frame %d: %d inliers, agreement %.3f",
+            prev_index, registration.n_inliers, agreement,
+        )  # fmt: skip
+        if agreement < FLOW_MIN_AGREEMENT or not _peaks(agreement, prev, features, registration):
+            return None
+        H = self._poses[prev_index] @ registration.H_cur_to_prev
+        return Track(
+            H, registration, None, prev, None, reference_index=prev_index, previous=registration,
+            by_flow=True,
+        )  # fmt: skip
 
     def _contradicted(
         self, best: Track, previous: Registration | None, shape: tuple[int, int]
@@ -536,6 +590,10 @@ class KeyframeTracker:
         self._poses[index] = track.H_frame_to_ref
         prev = self._prev
         self._prev = (index, features)
+        if prev is not None:  # the last step's motion: the prior of the next frame's flow
+            self._step = np.linalg.inv(self._poses[prev[0]]) @ self._poses[index]
+        if track.by_flow:
+            self._counters.by_flow += 1
         if track.registration is None:  # first frame of the segment
             self._promote(index, features, shape, track.H_frame_to_ref)
             return
@@ -684,10 +742,26 @@ class KeyframeTracker:
             "loop_closures": c.loop_closures,
             "loop_attempts": c.loop_attempts,
             "extra_links": c.extra_links,
+            "placed_by_flow": c.by_flow,
             "tracked_registrations": self._perspective.tracked,
             "perspective_relaxed": self._perspective.relaxed,
             "refinement": c.refinement or None,
         }
+
+
+def _peaks(
+    agreement: float, reference: Features, features: Features, registration: Registration
+) -> bool:
+    """Is the two textures' agreement at the registration higher than with the placement
+    moved FLOW_PEAK_PX along either axis (a placement, not a plateau)?"""
+    assert reference.texture is not None and features.texture is not None
+    assert registration.H_cur_to_prev is not None
+    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        shift = np.array([[1.0, 0, dx * FLOW_PEAK_PX], [0, 1.0, dy * FLOW_PEAK_PX], [0, 0, 1.0]])
+        H = shift @ registration.H_cur_to_prev
+        if texture_agreement(reference.texture, features.texture, H) >= agreement:
+            return False
+    return True
 
 
 class _NoTimer:
