@@ -62,7 +62,7 @@ from mosaic.fidelity import (
     oracle_fidelity,
     prepare_source,
 )
-from mosaic.io import atomic_path, read_image, write_json, write_text
+from mosaic.io import UNDECODABLE, atomic_path, read_image, write_json, write_text
 from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicResult
 from mosaic.preprocess import field_of_view_mask, prepare, retina_disc, scale_matrix, to_gray
@@ -1241,7 +1241,10 @@ def evaluate_video(
         errors = _video_errors(frames, gt, size)
         steps = _step_errors(frames, gt, size)
     step_values = np.array(list(steps.values()))
-    decoded = max(summary["frames_read"] - summary["skipped"], 1)
+    # every frame the video holds counts, those the gate skipped too (a frame skipped as
+    # blurred is not placed: counting it out flattered gating); only undecodable ones do not
+    undecodable = sum(f.get("reason") == UNDECODABLE for f in frames)
+    decoded = max(summary["frames_read"] - undecodable, 1)
     values = np.array(list(errors.values())) if errors else np.zeros(0)
     drift = math.nan
     if len(values) >= 2:

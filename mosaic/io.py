@@ -52,6 +52,9 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)
 
 
+UNDECODABLE = "frame could not be decoded"  # the reason a frame with no pixels is skipped
+
+
 @dataclass(frozen=True)
 class VideoInfo:
     """What is known about an input before decoding it: kind, frame count, rate, frame size."""
@@ -260,7 +263,7 @@ class FrameSource:
         if first is not None:
             yield self._checked(0, first)
         else:
-            yield self._corrupt(0, "frame could not be decoded")
+            yield self._corrupt(0, UNDECODABLE)
         yielded += 1
         pending: list[int] = []  # selected indices whose read failed, not yet reported
         failures = 0
@@ -293,7 +296,7 @@ class FrameSource:
             for bad in pending:
                 if self.max_frames and yielded >= self.max_frames:
                     return
-                yield self._corrupt(bad, "frame could not be decoded")
+                yield self._corrupt(bad, UNDECODABLE)
                 yielded += 1
             pending.clear()
             if wanted:

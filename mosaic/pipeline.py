@@ -39,7 +39,7 @@ from mosaic.compose import (
 from mosaic.config import Config, config_to_dict
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features, to_frame_pixels
-from mosaic.io import Frame, Lookahead
+from mosaic.io import UNDECODABLE, Frame, Lookahead
 from mosaic.matching import Matches, match_descriptors
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import (
@@ -432,7 +432,7 @@ class MosaicBuilder:
     def _extract(self, index: int, image: np.ndarray | None, error: str | None) -> Extracted:
         record = FrameRecord(index=index)
         if image is None:
-            return Extracted(record, None, skip=error or "frame could not be decoded")
+            return Extracted(record, None, skip=error or UNDECODABLE)
         timer = _Timer(record)
         image, record.deinterlaced = timer.run("preprocess", self._fields, image)
         work, S = timer.run("preprocess", self._working_size, image)
@@ -582,8 +582,10 @@ class MosaicBuilder:
         """Put the frame on the canvas and let the tracker take it; or say why not."""
         assert track.H_frame_to_ref is not None
         H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
-        if record.blurred is not None:  # registered, kept out of the blend
-            segment.tracker.commit(record.index, features, prepared.gray.shape, track)
+        if record.blurred is not None:  # registered, kept out of the blend; a leaf of the
+            # track where a keyframe registers it (else it carries the chain on)
+            leaf = dataclasses.replace(track, leaf=True)
+            segment.tracker.commit(record.index, features, prepared.gray.shape, leaf)
             record.status, record.H_frame_to_ref, record.segment = (
                 REGISTERED,
                 H_frame_to_ref,

@@ -58,6 +58,7 @@ class Track:
     attempts: int = 0
     reference_index: int | None = None  # input frame index of the reference
     by_flow: bool = False  # placed by optical flow from the predecessor (`_by_flow`)
+    leaf: bool = False  # committed as a leaf: placed and linked, but no later frame's reference
     previous: Registration | None = None  # the frame against its predecessor (keyframes)
     previous_matches: Matches | None = None
     # registrations to other keyframes than the chosen one: (keyframe's frame index, it)
@@ -585,6 +586,9 @@ class KeyframeTracker:
     # -- committing ------------------------------------------------------------------------
     def commit(self, index: int, features: Features, shape: tuple[int, int], track: Track) -> None:
         assert track.H_frame_to_ref is not None
+        if track.leaf and track.keyframe is not None:
+            self._commit_leaf(index, track)
+            return
         self._shape = shape
         self._last_pose = track.H_frame_to_ref
         self._poses[index] = track.H_frame_to_ref
@@ -628,6 +632,23 @@ class KeyframeTracker:
         new = self._promote(index, features, shape, track.H_frame_to_ref)
         if self._kcfg.loop_closure:
             self._close_loops(new, kf.id, shape)
+
+    def _commit_leaf(self, index: int, track: Track) -> None:
+        """A frame placed and tied into the pose graph by its links, which no later frame
+        registers to (neither keyframe nor predecessor): a blurred or hazy frame's registrations
+        are the least precise, and chained through, they would carry their error on."""
+        assert track.H_frame_to_ref is not None and track.keyframe is not None
+        assert track.registration is not None and self._shape is not None
+        shape, prev = self._shape, self._prev
+        self._poses[index] = track.H_frame_to_ref
+        if track.previous is not None and track.previous.ok and prev is not None:
+            self._add_constraint(index, prev[0], track.previous, shape)
+        kf = self._keyframes[track.keyframe]
+        if kf.frame_index != (prev[0] if prev else None):
+            self._add_constraint(index, kf.frame_index, track.registration, shape)
+        for other, link in track.links:
+            self._add_constraint(index, other, link, shape)
+            self._counters.extra_links += 1
 
     def _weak(self, kf: Keyframe, registration: Registration) -> str | None:
         """Why the keyframe no longer holds (its registrations decay), or None."""

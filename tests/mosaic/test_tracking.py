@@ -210,6 +210,10 @@ def test_blurred_frames_are_tracked_and_left_out_of_the_blend(trip):
     assert result.main is not None and result.main.n_frames == 13  # in the mosaic: the sharp
     errors = _errors_to_first(result, truth)
     assert errors[list(BURST)].max() < BLURRED_PX, errors
+    # leaves of the track: no later frame registers to a blurred one, which would carry its
+    # error on; the frames after the burst are placed as the sharp ones before it
+    assert all(f.get("reference") not in BURST for f in frames_out[BURST[-1] + 1 :])
+    assert errors[BURST[-1] + 1 :].max() < 1.5 * errors[: BURST[0]].max() + 0.5, errors
 
 
 def test_frames_descriptors_miss_are_placed_by_flow(trip):
