@@ -502,11 +502,12 @@ class MosaicBuilder:
         timer = _Timer(record)
         segment = self._segment or self._new_segment()
         shape = prepared.gray.shape
-        track = self._back_to_first(record.index, features, shape, timer)
+        leaf = record.blurred is not None  # see `_place`
+        track = self._back_to_first(record.index, features, shape, timer, leaf)
         if track is not None:
             segment = self._segments[0]
         else:
-            track = segment.tracker.track(record.index, features, shape, timer)
+            track = segment.tracker.track(record.index, features, shape, timer, leaf)
         _note_registration(record, track)
         reason = track.reason
         if reason is None:
@@ -641,20 +642,25 @@ class MosaicBuilder:
                 record.reason = f"{reason}; started segment {segment.index}"
 
     def _back_to_first(
-        self, index: int, features: Features, shape: tuple[int, int], timer: _Timer
+        self,
+        index: int,
+        features: Features,
+        shape: tuple[int, int],
+        timer: _Timer,
+        leaf: bool = False,
     ) -> Track | None:
         """While a later segment grows (`_start_again`), each frame is tried against the first
         segment before it: a camera that comes back to the area mapped first continues that
         mosaic, as it would have without the later segment. The frame's track there, or None."""
         if self._active == 0 or self.config.pipeline.on_failure != "skip":
             return None
-        track = self._segments[0].tracker.track(index, features, shape, timer)
+        track = self._segments[0].tracker.track(index, features, shape, timer, leaf)
         if track.reason is not None:
             return None
         log.info("frame %d registers to the first segment again", index)
         later = self._segments[self._active]
         self._active = 0
-        back = later.tracker.track(index, features, shape, timer)
+        back = later.tracker.track(index, features, shape, timer, leaf)
         if back.H_frame_to_ref is not None and back.reference_index is not None:
             poses = {r.index: r.H_frame_to_ref for r in later.records}
             H_reference = poses.get(back.reference_index)

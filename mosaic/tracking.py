@@ -78,8 +78,11 @@ class Tracker(Protocol):
 
     name: str
 
-    def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
-        """Propose where the frame goes (the first frame of a segment: identity)."""
+    def track(
+        self, index: int, features: Features, shape: tuple[int, int], timer: Any, leaf: bool = False
+    ) -> Track:
+        """Propose where the frame goes (the first frame of a segment: identity); `leaf`: the
+        frame is to be committed as a leaf (`Track.leaf`), and leaves the video's state as is."""
         ...
 
     def commit(self, index: int, features: Features, shape: tuple[int, int], track: Track) -> None:
@@ -123,6 +126,12 @@ class PerspectiveEvidence:
     def add(self, value: float) -> None:
         if np.isfinite(value):
             self._values.append(value)
+
+    def copy(self) -> PerspectiveEvidence:
+        """The evidence so far, to vote on without changing this one."""
+        other = PerspectiveEvidence()
+        other._values.extend(self._values)
+        return other
 
     def needed(self, value: float, model: str) -> bool:
         """Relax this registration (its own evidence `value`, already added)?"""
@@ -243,7 +252,9 @@ class ChainTracker:
         self._H_prev_to_ref = np.eye(3)
         self._poses: dict[int, np.ndarray] = {}
 
-    def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
+    def track(
+        self, index: int, features: Features, shape: tuple[int, int], timer: Any, leaf: bool = False
+    ) -> Track:
         if self._prev is None:
             return Track(np.eye(3))
         matches, registration = _register(self._prev, features, self._config, timer, shape)
@@ -338,6 +349,8 @@ class KeyframeTracker:
         self._active: int | None = None
         self._poses: dict[int, np.ndarray] = {}  # H_frame_to_ref of every committed frame
         self._constraints: list[Constraint] = []
+        # leaves (`Track.leaf`): frame index -> (its keyframe's frame index, H_frame_to_keyframe)
+        self._leaves: dict[int, tuple[int, np.ndarray]] = {}
         self._prev: tuple[int, Features] | None = None  # the last committed frame
         self._last_pose: np.ndarray | None = None
         self._step: np.ndarray | None = None  # H_prev_to_prevprev of the last two committed
@@ -393,16 +406,20 @@ class KeyframeTracker:
             return nearby + (rest[start:] + rest[:start])[:n]
         return nearby
 
-    def track(self, index: int, features: Features, shape: tuple[int, int], timer: Any) -> Track:
+    def track(
+        self, index: int, features: Features, shape: tuple[int, int], timer: Any, leaf: bool = False
+    ) -> Track:
         if not self._keyframes:
             return Track(np.eye(3))
+        # a leaf's registrations (blurred, hazy) do not vote on the video's perspective
+        perspective = self._perspective.copy() if leaf else self._perspective
         previous = previous_matches = None
         prev_is_keyframe = self._prev is not None and any(
             kf.frame_index == self._prev[0] for kf in self._keyframes.values()
         )
         if self._prev is not None and not prev_is_keyframe:
             previous_matches, previous = _register(
-                self._prev[1], features, self._config, timer, shape, perspective=self._perspective
+                self._prev[1], features, self._config, timer, shape, perspective=perspective
             )
         candidates = self._candidates(shape)
         first: Track | None = None
@@ -411,7 +428,7 @@ class KeyframeTracker:
         for kf in candidates:
             assert kf.features is not None
             matches, registration = _register(
-                kf.features, features, self._config, timer, shape, perspective=self._perspective
+                kf.features, features, self._config, timer, shape, perspective=perspective
             )
             tried[kf.id] = registration
             if kf.frame_index == self._prev_index:
@@ -441,7 +458,7 @@ class KeyframeTracker:
         if best is not None:
             self._lost = False
             assert best.keyframe is not None
-            tried.update(self._bridge(index, features, shape, timer, tried))
+            tried.update(self._bridge(index, features, shape, timer, tried, perspective))
             links = self._links(best, tried, shape)
             return dataclasses.replace(
                 best,
@@ -562,6 +579,7 @@ class KeyframeTracker:
         shape: tuple[int, int],
         timer: Any,
         tried: dict[int, Registration],
+        perspective: PerspectiveEvidence,
     ) -> dict[int, Registration]:
         """For the first `bridge_frames` frames after a promotion, the frame's registrations to
         the `bridge_keyframes` keyframes before the newest one (those not tried already). A new
@@ -579,7 +597,7 @@ class KeyframeTracker:
             if kid in tried or kf.features is None or kf.frame_index == self._prev_index:
                 continue  # the previous frame's registration is its own link
             out[kid] = _register(
-                kf.features, features, self._config, timer, shape, perspective=self._perspective
+                kf.features, features, self._config, timer, shape, perspective=perspective
             )[1]
         return out
 
@@ -634,21 +652,15 @@ class KeyframeTracker:
             self._close_loops(new, kf.id, shape)
 
     def _commit_leaf(self, index: int, track: Track) -> None:
-        """A frame placed and tied into the pose graph by its links, which no later frame
-        registers to (neither keyframe nor predecessor): a blurred or hazy frame's registrations
-        are the least precise, and chained through, they would carry their error on."""
+        """A frame placed by its keyframe alone, which moves no other pose: no later frame
+        registers to it (neither keyframe nor predecessor), and it stays out of the pose graph
+        (its link would pull its neighbours' tilts there); after refinement it follows its
+        keyframe. A blurred or hazy frame's registrations are the least precise."""
         assert track.H_frame_to_ref is not None and track.keyframe is not None
-        assert track.registration is not None and self._shape is not None
-        shape, prev = self._shape, self._prev
+        assert track.registration is not None and track.registration.H_cur_to_prev is not None
         self._poses[index] = track.H_frame_to_ref
-        if track.previous is not None and track.previous.ok and prev is not None:
-            self._add_constraint(index, prev[0], track.previous, shape)
         kf = self._keyframes[track.keyframe]
-        if kf.frame_index != (prev[0] if prev else None):
-            self._add_constraint(index, kf.frame_index, track.registration, shape)
-        for other, link in track.links:
-            self._add_constraint(index, other, link, shape)
-            self._counters.extra_links += 1
+        self._leaves[index] = (kf.frame_index, track.registration.H_cur_to_prev)
 
     def _weak(self, kf: Keyframe, registration: Registration) -> str | None:
         """Why the keyframe no longer holds (its registrations decay), or None."""
@@ -731,13 +743,20 @@ class KeyframeTracker:
     def refine(self) -> Refinement | None:
         if not self._kcfg.refine or len(self._poses) < 2:
             return None
-        fixed = min(self._poses)
+        graph = {k: H for k, H in self._poses.items() if k not in self._leaves}
+        if len(graph) < 2:
+            return None
+        fixed = min(graph)
         if self._tilted_graph and self._shape is not None:
             result = refine_tilted_poses(
-                self._poses, self._constraints, fixed, self._shape, self._kcfg.tilt_step_px
+                graph, self._constraints, fixed, self._shape, self._kcfg.tilt_step_px
             )
         else:
-            result = refine_poses(self._poses, self._constraints, fixed)
+            result = refine_poses(graph, self._constraints, fixed)
+        poses = dict(result.poses)
+        for index, (keyframe, H_frame_to_keyframe) in self._leaves.items():
+            poses[index] = poses[keyframe] @ H_frame_to_keyframe
+        result = dataclasses.replace(result, poses=poses)
         self._poses.update(result.poses)
         for kf in self._keyframes.values():
             kf.H_to_ref = self._poses[kf.frame_index]
