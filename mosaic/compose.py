@@ -90,6 +90,9 @@ BLEND_AHEAD = 1
 # for the second, up to this many bytes (113 frames of 660x350 take 82 MB; 14 of 1920x1080
 # fit); the video is read again for the others
 RERENDER_KEEP_BYTES = 96 * 2**20
+# frames (decoded, with their masks) read ahead while the pose graph is solved, up to this many
+# bytes (`ReadAhead`: ~0.2 s of reading, 34 frames of 660x350, 4 of 1920x1080)
+READ_AHEAD_BYTES = 32 * 2**20
 # feather / average / multiband: weight x min(1, relative sharpness / knee)^power
 SHARPNESS_KNEE = 0.8  # frames at least this sharp (relative to the others there) count fully
 SHARPNESS_POWER = 4.0  # ... blurrier ones fall off fast: half the knee weighs 1/16
@@ -862,7 +865,7 @@ class ReadAhead:
     neither). Up to `keep_bytes` of frames (image and mask) wait to be taken, in order; the
     first call takes them, a later call reads afresh. `close` stops the thread."""
 
-    def __init__(self, frames: FrameSource, keep_bytes: int = RERENDER_KEEP_BYTES) -> None:
+    def __init__(self, frames: FrameSource, keep_bytes: int = READ_AHEAD_BYTES) -> None:
         self._frames = frames
         self._keep_bytes = keep_bytes
         self._held: deque[tuple[int, np.ndarray, np.ndarray]] = deque()
