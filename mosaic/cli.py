@@ -811,38 +811,64 @@ def compare(
     ] = None,
     config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
     detector: Annotated[str | None, typer.Option(help=f"{', '.join(DETECTORS)}.")] = None,
+    rerun: Annotated[
+        str,
+        typer.Option(
+            help=f"Rerun viewer: {' | '.join(VIEWER_MODES)}; baseline, warped follow-up and "
+            "change map as layers of one space."
+        ),
+    ] = "off",
+    rerun_target: Annotated[
+        str | None,
+        typer.Option(
+            help="save: the .rrd file (default OUT_DIR/compare.rrd); "
+            "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
+        ),
+    ] = None,
+    viewer_flag: Annotated[bool, typer.Option("--viewer", help="Short for --rerun spawn.")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Put a follow-up visit on the baseline's map: the follow-up warped, a checkerboard, a
     two-colour overlay, a change map and compare.json (H/Q_followup_to_baseline, changed
     regions). Different eyes or no overlap: one line, exit 1."""
-    from mosaic.compare import NotComparableError, run_compare, run_manifest
+    from mosaic.compare import NotComparableError, not_compared, run_compare, run_manifest
+    from mosaic.viz import make_compare_viewer
 
     _setup_logging(verbose)
+    viewer = None
     with _user_errors():
         if manifest is not None:
             if baseline or followup:
                 raise InputError("BASELINE and FOLLOWUP, or --manifest: not both")
+            if rerun != "off" or viewer_flag:
+                raise InputError("the rerun viewer shows one pair: not with --manifest")
             summary = run_manifest(manifest, output, _config(config_path, detector))
             rows = [r for p in summary["patients"].values() for r in p["visits"]]
-            done = sum(r["status"] == "registered" for r in rows)
+            missed = not_compared(summary["patients"])
             typer.echo(
-                f"{len(summary['patients'])} patients, {len(rows)} later visits: {done} "
-                f"compared, {len(rows) - done} not\nwritten: {output / 'index.html'}"
+                f"{len(summary['patients'])} patients, {len(rows)} later visits: "
+                f"{len(rows) - missed} compared, {missed} not\nwritten: {output / 'index.html'}"
             )
-            if done < len(rows):
+            if missed:
                 raise typer.Exit(EXIT_FAILED)
             return
         if baseline is None or followup is None:
             raise InputError("give BASELINE and FOLLOWUP, or --manifest VISITS.csv")
         check_distinct_paths({"--output": output}, {"BASELINE": baseline, "FOLLOWUP": followup})
+        config = _config(config_path, detector)
+        if rerun != "off" or viewer_flag:  # the folder first: the recording goes into it
+            output.mkdir(parents=True, exist_ok=True)
+        rerun, rerun_target = _viewer_args(rerun, rerun_target, viewer_flag, output / "compare.rrd")
+        viewer = make_compare_viewer(rerun, rerun_target)
+        if getattr(viewer, "url", None):
+            typer.echo(f"rerun viewer: {viewer.url}")  # type: ignore[attr-defined]
         try:
-            comparison, result = run_compare(
-                baseline, followup, output, _config(config_path, detector)
-            )
+            comparison, result = run_compare(baseline, followup, output, config, viewer)
         except NotComparableError as exc:
             typer.echo(f"not comparable: {exc}", err=True)
             raise typer.Exit(EXIT_FAILED) from None
+        finally:
+            viewer.close()
     model = "quadratic" if comparison.Q_followup_to_baseline is not None else comparison.model
     typer.echo(
         f"registered ({model}, residual {comparison.residual_px:.2f} px, overlap "
@@ -850,6 +876,10 @@ def compare(
         f"{len(comparison.regions)} changed region(s)\nwritten: {output / 'compare.json'}, "
         + ", ".join(result["pictures"])
     )
+    if rerun == "save":
+        typer.echo(f"recording: {rerun_target}")
+    elif rerun == "serve":
+        _serve_until_interrupted(getattr(viewer, "url", None))
 
 
 def _print_pair(result: dict[str, Any]) -> None:

@@ -27,9 +27,10 @@ import html
 import json
 import logging
 import re
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import cv2
 import numpy as np
@@ -51,7 +52,11 @@ from mosaic.refine import fixed_to_moving_map
 from mosaic.registration import apply_homography, apply_quadratic, quadratic_terms
 from mosaic.runner import Outputs, run_video, thumbnail
 
+if TYPE_CHECKING:
+    from mosaic.viz import ComparisonViewer
+
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 # Scales, in pixels of a retina of REFERENCE_RADIUS_PX (a photograph is scaled by its disc's
 # radius; a mosaic is at its frames' scale, taken as this one).
@@ -201,10 +206,16 @@ def _report_beside(image_path: Path) -> Path | None:
 
 
 def load_visit(
-    path: Path, name: str, out_dir: Path, config: Config, extractor: FeatureExtractor | None
+    path: Path,
+    name: str,
+    out_dir: Path,
+    config: Config,
+    extractor: FeatureExtractor | None,
+    report_path: Path | None = None,
 ) -> Visit:
     """A visit from a video or frame folder (its mosaic built into `out_dir/NAME_mosaic.png`
-    and `.json`), a mosaic with its report beside it, or a photograph."""
+    and `.json`), a mosaic with its report beside it (or at `report_path`: `mosaic batch`
+    writes report.json), or a photograph."""
     path = Path(path).expanduser()
     if not path.exists():
         raise InputError(f"{name} not found: {path}")
@@ -223,7 +234,7 @@ def load_visit(
     image = read_image(path)
     if image.ndim == 2:
         image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-    report_path = _report_beside(path)
+    report_path = report_path or _report_beside(path)
     report = None
     if report_path is not None:
         try:
@@ -683,10 +694,15 @@ def write_comparison(
 
 
 def run_compare(
-    baseline_path: Path, followup_path: Path, out_dir: Path, config: Config
+    baseline_path: Path,
+    followup_path: Path,
+    out_dir: Path,
+    config: Config,
+    viewer: ComparisonViewer | None = None,
 ) -> tuple[Comparison, dict[str, Any]]:
     """`mosaic compare`: both visits loaded (videos built), registered and compared; the
-    pictures and `compare.json` written into `out_dir` (created). A refusal
+    pictures and `compare.json` written into `out_dir` (created), and the two visits and the
+    change map shown by `viewer` (`mosaic.viz`: layers of one space). A refusal
     (`NotComparableError`) writes `compare.json` with status "refused" and its reason, then
     raises."""
     out_dir = _make_folder(out_dir)
@@ -699,7 +715,10 @@ def run_compare(
         refused = {"status": "refused", "reason": str(exc), **_inputs(baseline, followup)}
         write_json(out_dir / "compare.json", refused)
         raise
-    return comparison, write_comparison(out_dir, baseline, followup, comparison)
+    result = write_comparison(out_dir, baseline, followup, comparison)
+    if viewer is not None:
+        viewer.comparison(baseline.image, comparison, result)
+    return comparison, result
 
 
 # --------------------------------------------------------------------------------------------
@@ -710,10 +729,24 @@ MANIFEST_COLUMNS = ("patient", "visit", "path")
 THUMB_PX = 240  # the index's pictures, longer side
 
 
+def group_visits(rows: Iterable[tuple[str, str, T]], where: str) -> dict[str, list[tuple[str, T]]]:
+    """Each patient's (or eye's) visits, earliest first, from (patient, visit, item) rows
+    in any order: visits ordered as text, naturally (ISO dates `2025-03-01`, numbers `1, 2,
+    10`); a patient's visit given twice is an `InputError` naming `where`."""
+    patients: dict[str, list[tuple[str, T]]] = {}
+    for patient, visit, item in rows:
+        patients.setdefault(patient, []).append((visit, item))
+    for patient, visits in patients.items():
+        visits.sort(key=lambda v: natural_key(v[0]))
+        names = [v for v, _ in visits]
+        if len(set(names)) != len(names):
+            raise InputError(f"{where}: patient {patient} has a visit twice")
+    return patients
+
+
 def read_manifest(path: Path) -> dict[str, list[tuple[str, Path]]]:
-    """Each patient's (or eye's) visits, earliest first, from a CSV with columns patient,
-    visit, path (paths relative to the CSV; visits ordered as text, naturally: ISO dates
-    `2025-03-01` or numbers `1, 2, 10`)."""
+    """Each patient's visits, earliest first (`group_visits`), from a CSV with columns
+    patient, visit, path (paths relative to the CSV)."""
     path = Path(path).expanduser()
     if not path.is_file():
         raise InputError(f"manifest not found: {path}")
@@ -724,18 +757,13 @@ def read_manifest(path: Path) -> dict[str, list[tuple[str, Path]]]:
         raise InputError(f"cannot read manifest {path}: {exc}") from None
     if not rows or not set(MANIFEST_COLUMNS) <= set(rows[0]):
         raise InputError(f"{path} must be a CSV with columns {','.join(MANIFEST_COLUMNS)}")
-    patients: dict[str, list[tuple[str, Path]]] = {}
+    visits: list[tuple[str, str, Path]] = []
     for i, row in enumerate(rows):
         values = [(row.get(c) or "").strip() for c in MANIFEST_COLUMNS]
         if not all(values):
             raise InputError(f"{path} row {i + 2}: patient, visit and path must all be given")
-        patients.setdefault(values[0], []).append((values[1], path.parent / values[2]))
-    for patient, visits in patients.items():
-        visits.sort(key=lambda v: natural_key(v[0]))
-        names = [v for v, _ in visits]
-        if len(set(names)) != len(names):
-            raise InputError(f"{path}: patient {patient} has a visit twice")
-    return patients
+        visits.append((values[0], values[1], path.parent / values[2]))
+    return group_visits(visits, str(path))
 
 
 def _safe(name: str) -> str:
@@ -743,67 +771,104 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "_"
 
 
+def compare_patient(
+    patient: str,
+    visits: list[tuple[str, T]],
+    out_dir: Path,
+    load: Callable[[T, str, Path], Visit],
+    config: Config,
+    extractor: FeatureExtractor,
+) -> dict[str, Any]:
+    """One patient's later visits compared onto the first, into `out_dir/<patient>/<visit>/`
+    (as `mosaic compare` writes them, with thumbnails for the index); `load(item, name,
+    folder)` makes each visit (`load_visit`, or a batch's built mosaic). A visit that cannot
+    be loaded or compared is its row's status. Returns the patient's summary entry:
+    `{"baseline": first visit, "visits": [row per later visit]}`."""
+    folder = _make_folder(out_dir / _safe(patient))
+    (first, first_item), later = visits[0], visits[1:]
+    rows: list[dict[str, Any]] = []
+    entry = {"baseline": first, "visits": rows}
+    try:
+        base_dir = _make_folder(folder / _safe(first))
+        baseline = load(first_item, "baseline", base_dir)
+    except MosaicError as exc:
+        rows.extend({"visit": v, "status": "failed", "reason": f"baseline: {exc}"}
+                    for v, _ in later)  # fmt: skip
+        return entry
+    write_image(base_dir / "baseline.jpg", thumbnail(baseline.image, THUMB_PX))
+    for visit, item in later:
+        row: dict[str, Any] = {"visit": visit, "folder": f"{_safe(patient)}/{_safe(visit)}"}
+        try:
+            visit_dir = _make_folder(folder / _safe(visit))
+            followup = load(item, "followup", visit_dir)
+            comparison = compare_visits(baseline, followup, config, extractor)
+        except NotComparableError as exc:
+            row.update(status="refused", reason=str(exc))
+        except MosaicError as exc:
+            row.update(status="failed", reason=str(exc))
+        else:
+            written = write_comparison(visit_dir, baseline, followup, comparison)
+            row.update(status="registered", regions=len(written["regions"]),
+                       overlap_share=written["overlap_share"])  # fmt: skip
+            for name in ("followup_warped", "change_map"):
+                image = cv2.imread(str(visit_dir / f"{name}.png"))
+                write_image(visit_dir / f"{name}.jpg", thumbnail(image, THUMB_PX))
+        log.info("%s %s: %s", patient, visit, row["status"])
+        rows.append(row)
+    return entry
+
+
 def run_manifest(manifest: Path, out_dir: Path, config: Config) -> dict[str, Any]:
-    """Each patient's later visits compared onto the first (`OUT/<patient>/<visit>/`, as
-    `mosaic compare` writes them; a video's mosaic into `OUT/<patient>/<visit>/`), a
-    `summary.json` and an `index.html` showing each patient's visits side by side with the
-    change maps. A visit that cannot be loaded or compared is its row's status; the rest go
-    on."""
+    """Each patient's later visits compared onto the first (`compare_patient`; a video's
+    mosaic into `OUT/<patient>/<visit>/`), a `summary.json` and an `index.html` showing each
+    patient's visits side by side with the change maps."""
     patients = read_manifest(manifest)
     out_dir = _make_folder(out_dir)
     extractor = FeatureExtractor(config.features)
+
+    def load(path: Path, name: str, folder: Path) -> Visit:
+        return load_visit(path, name, folder, config, extractor)
+
     summary: dict[str, Any] = {"manifest": str(manifest), "patients": {}}
     for patient, visits in patients.items():
-        folder = _make_folder(out_dir / _safe(patient))
-        (first, first_path), later = visits[0], visits[1:]
-        rows: list[dict[str, Any]] = []
-        summary["patients"][patient] = {"baseline": first, "visits": rows}
-        try:
-            base_dir = _make_folder(folder / _safe(first))
-            baseline = load_visit(first_path, "baseline", base_dir, config, extractor)
-        except MosaicError as exc:
-            rows.extend({"visit": v, "status": "failed", "reason": f"baseline: {exc}"}
-                        for v, _ in later)  # fmt: skip
-            continue
-        write_image(base_dir / "baseline.jpg", thumbnail(baseline.image, THUMB_PX))
-        for visit, visit_path in later:
-            row: dict[str, Any] = {"visit": visit, "folder": f"{_safe(patient)}/{_safe(visit)}"}
-            try:
-                visit_dir = _make_folder(folder / _safe(visit))
-                followup = load_visit(visit_path, "followup", visit_dir, config, extractor)
-                comparison = compare_visits(baseline, followup, config, extractor)
-            except NotComparableError as exc:
-                row.update(status="refused", reason=str(exc))
-            except MosaicError as exc:
-                row.update(status="failed", reason=str(exc))
-            else:
-                written = write_comparison(visit_dir, baseline, followup, comparison)
-                row.update(status="registered", regions=len(written["regions"]),
-                           overlap_share=written["overlap_share"])  # fmt: skip
-                for name in ("followup_warped", "change_map"):
-                    image = cv2.imread(str(visit_dir / f"{name}.png"))
-                    write_image(visit_dir / f"{name}.jpg", thumbnail(image, THUMB_PX))
-            log.info("%s %s: %s", patient, visit, row["status"])
-            rows.append(row)
+        summary["patients"][patient] = compare_patient(
+            patient, visits, out_dir, load, config, extractor
+        )
     write_json(out_dir / "summary.json", summary)
     write_text(out_dir / "index.html", _index_html(summary))
     return summary
 
 
+def not_compared(patients: dict[str, Any]) -> int:
+    """Later visits of a summary's patients that were not registered (refused or failed)."""
+    return sum(r["status"] != "registered" for p in patients.values() for r in p["visits"])
+
+
 def _index_html(summary: dict[str, Any]) -> str:
-    """Each patient's row: the first visit, then each later one on its map and its change."""
-    out = ["<!doctype html><meta charset=utf-8><title>mosaic compare</title>",
-           "<style>body{font-family:sans-serif}td{vertical-align:top;padding:4px}"
-           "img{max-width:240px;display:block}</style><h1>Visits compared</h1><table>"]  # fmt: skip
-    for patient, entry in summary["patients"].items():
-        p = html.escape(_safe(patient))
+    """The page of `--manifest`: the patients' table (`patients_table`)."""
+    return (
+        "<!doctype html><meta charset=utf-8><title>mosaic compare</title>\n"
+        "<style>body{font-family:sans-serif}</style><h1>Visits compared</h1>\n"
+        + patients_table(summary["patients"])
+    )
+
+
+def patients_table(patients: dict[str, Any], root: str = "") -> str:
+    """Each patient's row: the first visit, then each later one on its map and its change
+    (links relative to the page; `root`: the comparisons' folder under it, e.g. `compare/`)."""
+    out = ["<style>table.visits td{vertical-align:top;padding:4px}"
+           "table.visits img{max-width:240px;max-height:none;display:block}</style>"
+           "<table class='visits'>"]  # fmt: skip
+    root = html.escape(root)
+    for patient, entry in patients.items():
+        p = root + html.escape(_safe(patient))
         cells = [f"<td><b>{html.escape(patient)}</b><br>{html.escape(entry['baseline'])} "
                  f"(baseline)<img src='{p}/{html.escape(_safe(entry['baseline']))}"
                  "/baseline.jpg'></td>"]  # fmt: skip
         for row in entry["visits"]:
             text = f"{html.escape(row['visit'])}: {row['status']}"
             if row["status"] == "registered":
-                folder = html.escape(row["folder"])
+                folder = root + html.escape(row["folder"])
                 text += (f", {row['regions']} changed region(s)"
                          f"<img src='{folder}/followup_warped.jpg'>"
                          f"<img src='{folder}/change_map.jpg'>")  # fmt: skip

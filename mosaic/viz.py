@@ -25,6 +25,17 @@ Recording layout (timeline `frame`, sequence = frame index in the video):
                                  refinement and re-rendering), JPEG, downscaled to
                                  `canvas_max_side`
 
+`mosaic compare` (`RerunViewer(kind="compare")`, `comparison`): three static layers in the
+baseline's pixels, one 2D space (`compare`), drawn bottom to top, each toggled in the viewer:
+
+    compare/baseline             the baseline mosaic (RGB, lossless)
+    compare/followup             the follow-up warped onto the baseline (RGBA: transparent where
+                                 it shows no retina), equal to followup_warped.png
+    compare/change               the change map as a heat map (RGBA: transparent below the
+                                 threshold's half, opaque from twice it)
+    compare/change/regions       the changed regions' boxes
+    run/report                   static: compare.json's figures
+
 Coordinates: the pipeline uses OpenCV's convention (pixel centres at integers), rerun draws
 pixel (u, v) over [u, u + 1) x [v, v + 1); points are shifted by half a pixel before scaling.
 """
@@ -53,6 +64,7 @@ from mosaic.config import config_to_dict
 from mosaic.errors import ConfigError, OutputError
 
 if TYPE_CHECKING:
+    from mosaic.compare import Comparison
     from mosaic.compose import Canvas
     from mosaic.config import Config
     from mosaic.io import VideoInfo
@@ -80,6 +92,10 @@ _STAGE_COLORS = {
     "compose": (40, 180, 170),
 }
 _LEVELS = {"registered": "INFO", "failed": "WARN", "skipped": "WARN"}
+VIEWER_KINDS = ("build", "compare")  # what a recording shows: one build, or one comparison
+# `mosaic compare`'s layers, in one 2D space: entity under COMPARE_ORIGIN -> draw order
+COMPARE_ORIGIN = "compare"
+COMPARE_LAYERS = {"baseline": 0.0, "followup": 1.0, "change": 2.0}
 
 
 class Viewer(Protocol):
@@ -94,6 +110,20 @@ class Viewer(Protocol):
         ...
 
 
+class ComparisonViewer(Protocol):
+    """What `mosaic compare` tells a viewer: one comparison, then the end."""
+
+    def comparison(
+        self, baseline: np.ndarray, comparison: Comparison, result: Mapping[str, Any]
+    ) -> None:
+        """Two visits on the baseline's map (`baseline`: its BGR image) and what changed."""
+        ...
+
+    def close(self) -> None:
+        """Flush and detach; a saved recording is complete afterwards."""
+        ...
+
+
 class NullViewer:
     """Viewer off: costs nothing."""
 
@@ -101,6 +131,14 @@ class NullViewer:
         pass
 
     def finish(self, report: dict[str, Any], mosaic: np.ndarray | None = None) -> None:
+        pass
+
+    def comparison(
+        self, baseline: np.ndarray, comparison: Comparison, result: Mapping[str, Any]
+    ) -> None:
+        pass
+
+    def close(self) -> None:
         pass
 
 
@@ -148,6 +186,34 @@ def frame_outline(H_frame_to_display: np.ndarray, width: int, height: int) -> np
     mapped = corners @ H_frame_to_display.T
     pts = (mapped[:, :2] / mapped[:, 2:]).astype(np.float32)
     return np.vstack([pts, pts[:1]])
+
+
+def compare_layers(
+    baseline: np.ndarray,
+    warped: np.ndarray,
+    warped_covered: np.ndarray,
+    change: np.ndarray,
+    threshold: float,
+) -> dict[str, np.ndarray]:
+    """The three layers of a comparison as rerun shows them (uint8, baseline's pixels):
+    baseline RGB; follow-up RGBA, transparent where it has no retina (so the baseline shows
+    through); change RGBA, an inferno heat map of `change` (spreads) up to twice `threshold`,
+    transparent below half the threshold and opaque from twice it."""
+    import cv2
+
+    def rgb(image: np.ndarray) -> np.ndarray:
+        code = cv2.COLOR_GRAY2RGB if image.ndim == 2 else cv2.COLOR_BGR2RGB
+        return cv2.cvtColor(image, code)
+
+    alpha = np.where(warped_covered, 255, 0).astype(np.uint8)
+    level = np.clip(change / (2 * threshold), 0, 1)
+    heat = cv2.applyColorMap((level * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+    opacity = np.clip((change - 0.5 * threshold) / (1.5 * threshold), 0, 1)
+    return {
+        "baseline": rgb(baseline),
+        "followup": np.dstack([rgb(warped), alpha]),
+        "change": np.dstack([rgb(heat), (opacity * 255).astype(np.uint8)]),
+    }
 
 
 def draw_pair_matches(
@@ -302,9 +368,13 @@ class RerunViewer:
         open_browser: bool = False,
         flush_tick_s: float = 1.0,
         logger_name: str = "mosaic",
+        kind: str = "build",
+        layer_max_side: int = 4096,
     ) -> None:
         import rerun as rr
 
+        if kind not in VIEWER_KINDS:
+            raise ConfigError(f"unknown viewer kind {kind!r} (choices: {', '.join(VIEWER_KINDS)})")
         if mode not in VIEWER_MODES or mode == "off":
             raise ConfigError(f"unknown rerun mode {mode!r} (choices: spawn, save, serve, connect)")
         if canvas_every < 1:
@@ -315,6 +385,8 @@ class RerunViewer:
         self.canvas_max_side = canvas_max_side
         self.frame_max_side = frame_max_side
         self.jpeg_quality = jpeg_quality
+        self.kind = kind
+        self.layer_max_side = layer_max_side
         self._rr = rr
         # Batches of ~1 s instead of rerun's 0.2 s: several times fewer, larger chunks (each
         # carries ~2 KB of overhead), hence a smaller .rrd, at the price of ~1 s live latency.
@@ -344,7 +416,7 @@ class RerunViewer:
     def _open_sink(
         self, mode: str, target: str | Path | None, grpc_port: int, web_port: int, browser: bool
     ) -> None:
-        blueprint = make_blueprint()
+        blueprint = make_compare_blueprint() if self.kind == "compare" else make_blueprint()
         rec = self._rec
         try:
             if mode == "save":
@@ -384,6 +456,8 @@ class RerunViewer:
         if video_info is not None:
             rows = dataclasses.asdict(video_info)
             rec.log("run/video", rr.TextDocument(_markdown_table(rows), media_type=md), static=True)
+        if self.kind == "compare":
+            return  # no frames, keypoints or metrics
         classes = [
             rr.ClassDescription(info=rr.AnnotationInfo(id=i, label=label, color=color))
             for i, (label, color) in _CLASSES.items()
@@ -505,6 +579,50 @@ class RerunViewer:
         } | {f"ms/{stage}": ms for stage, ms in record.stage_ms.items()}
         for name, value in values.items():
             rec.log(f"metrics/{name}", rr.Scalars(float(value)))
+
+    # ------------------------------------------------------------------------------ compare
+
+    def comparison(
+        self, baseline: np.ndarray, comparison: Comparison, result: Mapping[str, Any]
+    ) -> None:
+        """Log a comparison's three layers (`compare_layers`) in one space, static, lossless
+        (downscaled alike when the baseline's longer side exceeds `layer_max_side`), the
+        changed regions' boxes and compare.json's figures."""
+        import cv2
+
+        from mosaic.compare import CHANGE_SIGMAS
+
+        rr, rec = self._rr, self._rec
+        layers = compare_layers(
+            baseline, comparison.warped, comparison.warped_covered, comparison.change,
+            CHANGE_SIGMAS,
+        )  # fmt: skip
+        scale = fit_scale(baseline.shape, self.layer_max_side)
+        for name, image in layers.items():
+            if scale < 1.0:
+                size = (
+                    max(1, round(image.shape[1] * scale)),
+                    max(1, round(image.shape[0] * scale)),
+                )
+                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            path = f"{COMPARE_ORIGIN}/{name}"
+            rec.log(path, rr.Image(image, draw_order=COMPARE_LAYERS[name]), static=True)
+        boxes = np.array([r.bbox for r in comparison.regions], np.float64).reshape(-1, 4)
+        rec.log(
+            f"{COMPARE_ORIGIN}/change/regions",
+            rr.Boxes2D(
+                mins=boxes[:, :2] * scale,
+                sizes=(boxes[:, 2:] - boxes[:, :2] + 1) * scale,
+                labels=[f"{r.mean_change:.1f}" for r in comparison.regions],
+                colors=[(0, 255, 255)],
+                draw_order=3.0,
+            ),
+            static=True,
+        )
+        keys = ("status", "model", "residual_px", "n_inliers", "correlation", "overlap_share")
+        rows = {k: result.get(k) for k in keys} | {"regions": len(comparison.regions)}
+        text = "# Comparison\n\n" + _markdown_table(rows)
+        rec.log("run/report", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
 
     # ------------------------------------------------------------------------------ end
 
@@ -636,6 +754,29 @@ def make_blueprint() -> Any:
         rrb.TimePanel(expanded=True),
         collapse_panels=False,
     )
+
+
+def make_compare_blueprint() -> Any:
+    """Layout of a comparison: the three layers in one 2D space (toggle each in the blueprint
+    panel), the figures beside it."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin=COMPARE_ORIGIN, name="visits on the baseline's map"),
+            rrb.TextDocumentView(origin="run/report", name="comparison"),
+            column_shares=[4, 1],
+        ),
+        collapse_panels=False,
+    )
+
+
+def make_compare_viewer(mode: str, target: str | Path | None, **options: Any) -> ComparisonViewer:
+    """The viewer of `mosaic compare --rerun MODE`: `NullViewer` for off, else a rerun
+    recording laid out for a comparison (`make_viewer`'s modes and targets)."""
+    viewer = make_viewer(mode, target, None, None, kind="compare", **options)
+    assert isinstance(viewer, NullViewer | RerunViewer)
+    return viewer
 
 
 def make_viewer(
