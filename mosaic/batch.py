@@ -2,10 +2,13 @@
 
 `find_tasks` turns the input into one `VideoTask` per video: a folder is searched recursively
 (video files, and folders of frames as one video each), a CSV manifest lists them (`video`,
-optional `config` and `id`). `run_batch` skips the videos already done (`--resume`: their
-report says `summary.complete`, see `mosaic.runner`), runs the others with an engine, each
-through `process_video` (which calls `runner.run_video`, the code path of `mosaic build`), and
-keeps OUT_DIR/summary.csv, summary.json and index.html up to date.
+optional `config`, `id`, and `patient` / `eye` with `visit`). `run_batch` skips the videos
+already done (`--resume`: their report says `summary.complete`, see `mosaic.runner`), runs
+the others with an engine, each through `process_video` (which calls `runner.run_video`, the
+code path of `mosaic build`), and keeps OUT_DIR/summary.csv, summary.json and index.html up
+to date. With patients named, each patient's (eye's) later visits are then compared onto the
+first (`compare_patients`: the per-patient loop of `mosaic compare --manifest`) into
+OUT_DIR/compare/<patient>/<visit>/.
 
 A video's failure is its row: an unreadable, empty or corrupt input, a bad per-video config, a
 crash of the process running it (the videos running beside it are tried again, alone) or of a
@@ -36,7 +39,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import AbstractContextManager, ExitStack, contextmanager, suppress
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -97,6 +100,8 @@ RAY_CONNECT_WAIT, RAY_CLUSTER_ID_WAIT = (
 )
 RAY_ATTEMPT_WAIT_S = 2
 RAY_ATTEMPTS = "RAY_gcs_server_port_wait_time_s"  # how many attempts (read by ray.init)
+COMPARISONS = "compare"  # OUT_DIR/compare/<patient>/<visit>/: visits on their first's map
+VISIT_COLUMNS = ("patient", "visit")  # summary.csv's extra columns when patients are named
 
 
 @dataclass(frozen=True)
@@ -107,6 +112,8 @@ class VideoTask:
     video: Path
     config: Path | None = None  # a manifest's per-video config (replaces --config)
     error: str | None = None  # a manifest row that cannot run: failed as it is
+    patient: str | None = None  # a manifest's patient (and eye): its visits are compared
+    visit: str | None = None  # the visit's label (a date), ordering the patient's visits
 
 
 @dataclass
@@ -116,10 +123,18 @@ class BatchResult:
     rows: list[dict[str, Any]]
     interrupted: bool = False
     counts: dict[str, int] = field(default_factory=dict)
+    patients: dict[str, Any] | None = None  # compare_patients' entries, when patients named
 
     @property
     def failed(self) -> int:
         return sum(row["status"] == FAILED for row in self.rows)
+
+    @property
+    def not_compared(self) -> int:
+        """Later visits not put on their first's map (refused, or a video failed)."""
+        from mosaic.compare import not_compared
+
+        return not_compared(self.patients or {})
 
 
 # --------------------------------------------------------------------------------------------
@@ -201,8 +216,10 @@ def _stem(rel: Path) -> str:
 
 def read_manifest(path: Path) -> list[VideoTask]:
     """Tasks of a CSV manifest: column `video` (paths relative to the manifest), optional
-    `config` (a TOML file per video, replacing --config) and `id`. A row without a video is a
-    failed row; duplicate ids are an error."""
+    `config` (a TOML file per video, replacing --config) and `id`, and optional `patient`
+    and/or `eye` with `visit` (a date): each patient's (eye's) visits are compared after the
+    mosaics are built. A row without a video is a failed row; duplicate ids, a patient's row
+    without a visit, or a patient's visit twice are errors."""
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
             rows = list(csv.DictReader(fh))
@@ -210,6 +227,9 @@ def read_manifest(path: Path) -> list[VideoTask]:
         raise InputError(f"cannot read manifest {path}: {exc}") from exc
     if not rows or "video" not in rows[0]:
         raise InputError(f"{path} must be a CSV with a 'video' column and at least one row")
+    named = {"patient", "eye"} & set(rows[0])
+    if named and "visit" not in rows[0]:
+        raise InputError(f"{path}: a '{sorted(named)[-1]}' column needs a 'visit' column (a date)")
     base = path.parent.resolve()
     tasks, ids = [], []
     for number, row in enumerate(rows, start=2):  # line 1 is the header
@@ -217,12 +237,18 @@ def read_manifest(path: Path) -> list[VideoTask]:
         config = (row.get("config") or "").strip()
         given = (row.get("id") or "").strip()
         ids.append(safe_id(given or (_stem(Path(video)) if video else f"row{number}")))
+        patient = " ".join(v for c in ("patient", "eye") if (v := (row.get(c) or "").strip()))
+        visit = (row.get("visit") or "").strip()
+        if named and not (patient and visit):
+            raise InputError(f"{path} row {number}: give the patient (or eye) and the visit")
         tasks.append(
             VideoTask(
                 ids[-1],
                 (base / video).resolve() if video else base / f"row{number}",
                 (base / config).resolve() if config else None,
                 None if video else f"manifest row {number}: no video given",
+                patient or None,
+                visit or None,
             )
         )
     explicit = [t.id for t, row in zip(tasks, rows, strict=True) if (row.get("id") or "").strip()]
@@ -230,7 +256,12 @@ def read_manifest(path: Path) -> list[VideoTask]:
     if duplicates:
         raise InputError(f"{path}: duplicate id(s) {', '.join(duplicates)}")
     unique = _unique(ids)
-    return [VideoTask(u, t.video, t.config, t.error) for u, t in zip(unique, tasks, strict=True)]
+    tasks = [replace(t, id=u) for u, t in zip(unique, tasks, strict=True)]
+    if named:  # a patient's visit given twice: before any video is built
+        from mosaic.compare import group_visits
+
+        group_visits(((t.patient or "", t.visit or "", t) for t in tasks), str(path))
+    return tasks
 
 
 # --------------------------------------------------------------------------------------------
@@ -333,7 +364,7 @@ def row_of(
         "report": f"{task.id}/{REPORT}" if paths["report"].is_file() else None,
         "log": f"{task.id}/{LOG}" if paths["log"].is_file() else None,
         "resumed": False,
-    }
+    } | ({"patient": task.patient, "visit": task.visit} if task.patient else {})
 
 
 def done_report(task: VideoTask, out_dir: Path) -> dict[str, Any] | None:
@@ -850,7 +881,46 @@ def run_batch(
         write(final=True)
     ordered = [rows.get(t.id) or row_of(t, out, None, NOT_RUN) for t in tasks]
     tally = {s: sum(r["status"] == s for r in ordered) for s in (OK, FAILED, INTERRUPTED, NOT_RUN)}
-    return BatchResult(ordered, interrupted, tally)
+    patients = None
+    if any(t.patient for t in tasks) and not interrupted:
+        patients = compare_patients(tasks, ordered, out, config, echo)
+        write_summary(out, ordered, meta, patients)
+    return BatchResult(ordered, interrupted, tally, patients)
+
+
+def compare_patients(
+    tasks: list[VideoTask],
+    rows: list[dict[str, Any]],
+    out: Path,
+    config: Config,
+    echo: Callable[[str], None],
+) -> dict[str, Any]:
+    """Each patient's (eye's) later visits compared onto the first visit's mosaic, as
+    `mosaic compare --manifest` does (`compare.compare_patient`), into OUT/compare/; a visit
+    whose video failed is a failed row. Returns the patients' summary entries."""
+    from mosaic.compare import compare_patient, group_visits, load_visit
+    from mosaic.features import FeatureExtractor
+
+    row_of_task = {t.id: r for t, r in zip(tasks, rows, strict=True)}
+    named = ((t.patient, t.visit or "", t) for t in tasks if t.patient)
+    extractor = FeatureExtractor(config.features)
+
+    def load(task: VideoTask, name: str, folder: Path) -> Any:
+        row = row_of_task[task.id]
+        if row["status"] != OK:
+            raise InputError(f"video {task.id} {row['status']}: {row['error']}")
+        paths = _folder_paths(out, task.id)
+        return load_visit(paths["mosaic"], name, folder, config, extractor, paths["report"])
+
+    patients = {}
+    for patient, visits in group_visits(named, "manifest").items():
+        patients[patient] = compare_patient(
+            patient, visits, out / COMPARISONS, load, config, extractor
+        )
+        for row in patients[patient]["visits"]:
+            detail = f"{row['regions']} changed region(s)" if "regions" in row else row["reason"]
+            echo(f"{row['status']:<10} {patient} {row['visit']}: {detail}")
+    return patients
 
 
 # --------------------------------------------------------------------------------------------
@@ -858,17 +928,25 @@ def run_batch(
 # --------------------------------------------------------------------------------------------
 
 
-def write_summary(out: Path, rows: list[dict[str, Any]], meta: dict[str, Any]) -> None:
-    """summary.csv, summary.json and index.html in `out`, each written atomically."""
+def write_summary(
+    out: Path,
+    rows: list[dict[str, Any]],
+    meta: dict[str, Any],
+    patients: dict[str, Any] | None = None,
+) -> None:
+    """summary.csv, summary.json and index.html in `out`, each written atomically; with the
+    patients' comparisons (`compare_patients`), their entries and table too."""
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, extrasaction="ignore", lineterminator="\n")
+    columns = COLUMNS + VISIT_COLUMNS if any("patient" in r for r in rows) else COLUMNS
+    writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     for row in rows:
-        writer.writerow({k: "" if row.get(k) is None else row[k] for k in COLUMNS})
+        writer.writerow({k: "" if row.get(k) is None else row[k] for k in columns})
     write_text(out / "summary.csv", buffer.getvalue())
     counts = {s: sum(r["status"] == s for r in rows) for s in (OK, FAILED, INTERRUPTED, NOT_RUN)}
-    write_json(out / "summary.json", {"meta": meta, "counts": counts, "videos": rows})
-    write_text(out / "index.html", render_index(rows, meta, counts))
+    summary = {"meta": meta, "counts": counts, "videos": rows}
+    write_json(out / "summary.json", summary | ({"patients": patients} if patients else {}))
+    write_text(out / "index.html", render_index(rows, meta, counts, patients))
 
 
 _STATUS_ORDER = {FAILED: 0, INTERRUPTED: 1, NOT_RUN: 2, OK: 3}
@@ -933,9 +1011,15 @@ def _cell(row: dict[str, Any], key: str, numeric: bool) -> str:
     return f'<td{klass} data-v="{html.escape(sort)}">{body}</td>'
 
 
-def render_index(rows: list[dict[str, Any]], meta: dict[str, Any], counts: dict[str, int]) -> str:
+def render_index(
+    rows: list[dict[str, Any]],
+    meta: dict[str, Any],
+    counts: dict[str, int],
+    patients: dict[str, Any] | None = None,
+) -> str:
     """The browsable summary: one self-contained page (inline style and script, no server),
-    a thumbnail per video linked to its mosaic, failed videos first, sortable by any column."""
+    a thumbnail per video linked to its mosaic, failed videos first, sortable by any column;
+    with `patients`, then each patient's visits side by side with their change maps."""
     ordered = sorted(
         enumerate(rows), key=lambda item: (_STATUS_ORDER.get(item[1]["status"], 9), item[0])
     )
@@ -965,5 +1049,15 @@ def render_index(rows: list[dict[str, Any]], meta: dict[str, Any], counts: dict[
         f"<table><thead><tr>{head}</tr></thead><tbody>\n"
         + "\n".join(lines)
         + "\n</tbody></table>\n"
-        f"<script>{_SCRIPT}</script>\n</body></html>\n"
+        + _visits_section(patients)
+        + f"<script>{_SCRIPT}</script>\n</body></html>\n"
     )
+
+
+def _visits_section(patients: dict[str, Any] | None) -> str:
+    """Each patient's row of visits (`compare.patients_table`), or nothing."""
+    if not patients:
+        return ""
+    from mosaic.compare import patients_table
+
+    return "<h2>Visits compared</h2>\n" + patients_table(patients, root=f"{COMPARISONS}/")

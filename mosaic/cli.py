@@ -381,7 +381,8 @@ def batch(
         typer.Argument(
             metavar="INPUT",
             help="Folder searched recursively for videos and folders of frames, or a CSV "
-            "manifest (columns video, optional config and id).",
+            "manifest (columns video, optional config and id; patient and/or eye with visit: "
+            "each patient's visits compared onto the first).",
         ),
     ],
     out_dir: Annotated[
@@ -430,7 +431,8 @@ def batch(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Build the mosaics of many videos: one folder per video, OUT_DIR/summary.csv / .json and
-    a browsable OUT_DIR/index.html. Exit 0: all built, 1: any failed, 130: interrupted."""
+    a browsable OUT_DIR/index.html; patients' visits (manifest) compared onto the first into
+    OUT_DIR/compare/. Exit 0: all built (and compared), 1: any not, 130: interrupted."""
     from mosaic.batch import run_batch
 
     _setup_logging(verbose)
@@ -455,11 +457,17 @@ def batch(
         raise typer.Exit(EXIT_INTERRUPTED) from None
     counts = ", ".join(f"{n} {status}" for status, n in result.counts.items() if n)
     typer.echo(f"{len(result.rows)} videos: {counts}")
+    if result.patients is not None:
+        later = sum(len(p["visits"]) for p in result.patients.values())
+        typer.echo(
+            f"{len(result.patients)} patients, {later} later visits: "
+            f"{later - result.not_compared} compared, {result.not_compared} not"
+        )
     typer.echo(f"summary: {Path(out_dir) / 'index.html'}")
     if result.interrupted:
         typer.echo("interrupted: rerun the same command to resume", err=True)
         raise typer.Exit(EXIT_INTERRUPTED)
-    if result.failed:
+    if result.failed or result.not_compared:
         raise typer.Exit(EXIT_FAILED)
 
 

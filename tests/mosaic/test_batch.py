@@ -532,3 +532,86 @@ def test_ids_and_page_escape_odd_names():
     }
     page = render_index([row], {"input": "<in>"}, {FAILED: 1})
     assert "<b>" not in page.replace("<body>", "") and "x &lt; y &amp; z" in page
+
+
+def test_manifest_patient_eye_and_visit_columns(tmp_path):
+    """patient and eye name one eye's visits; a named manifest needs every row's visit."""
+    manifest = tmp_path / "visits.csv"
+    manifest.write_text(
+        "video,patient,eye,visit\nb.mp4,anna,OD,2025-06-01\na.mp4,anna,OD,2024-11-20\n"
+    )
+    tasks = read_manifest(manifest)
+    assert [(t.id, t.patient, t.visit) for t in tasks] == [
+        ("b", "anna OD", "2025-06-01"), ("a", "anna OD", "2024-11-20")]  # fmt: skip
+    assert [r["patient"] for r in (row_of(t, tmp_path, None, NOT_RUN) for t in tasks)] == [
+        "anna OD"] * 2  # fmt: skip
+    for text, fragment in (
+        ("video,patient\na.mp4,anna\n", "needs a 'visit' column"),
+        ("video,patient,visit\na.mp4,anna,1\nb.mp4,,2\n", "row 3: give the patient"),
+        ("video,patient,visit\na.mp4,anna,1\nb.mp4,anna,1\n", "has a visit twice"),
+    ):
+        manifest.write_text(text)
+        with pytest.raises(InputError, match=fragment):
+            read_manifest(manifest)
+    assert "patient" not in row_of(VideoTask("v", tmp_path / "v.mp4"), tmp_path, None, NOT_RUN)
+
+
+@pytest.mark.slow  # two videos built, then compared: ~40 s on 2 shared cores
+def test_batch_compares_a_patients_visits_onto_the_first(tmp_path):
+    """Two synthetic visits of one eye (`synth --followup-of`'s hook: changes planted) in a
+    manifest with patient, eye and visit, rows out of date order: the later visit is put on
+    the earlier's mosaic within 2 px of the truth over the overlap, and the page shows both
+    visits with the change map."""
+    from types import SimpleNamespace
+
+    from mosaic.compare import covered_area
+    from mosaic.followup import followup_hook, load_baseline_gt, source_to_mosaic
+    from tests.mosaic.test_compare import MAX_ERROR_PX, alignment_error
+
+    base, follow = tmp_path / "base.mp4", tmp_path / "follow.mp4"
+    params = dict(n_frames=30, size=(480, 320))
+    write_synthetic_video(SAMPLE_IMAGE, base, SynthParams(seed=0, **params))
+    hook = followup_hook(load_baseline_gt(base), 1)
+    write_synthetic_video(SAMPLE_IMAGE, follow, SynthParams(seed=1, **params), hook)
+    manifest = tmp_path / "visits.csv"
+    manifest.write_text(
+        "video,patient,eye,visit\nfollow.mp4,anna,OD,2025-06-01\nbase.mp4,anna,OD,2024-11-20\n"
+    )
+    out = tmp_path / "out"
+    result = runner.invoke(app(), ["batch", str(manifest), "-o", str(out), "--workers", "1"])
+    assert result.exit_code == 0, result.output
+    assert "1 patients, 1 later visits: 1 compared, 0 not" in result.output
+    summary = json.loads((out / "summary.json").read_text())
+    anna = summary["patients"]["anna OD"]
+    assert anna["baseline"] == "2024-11-20"
+    assert [(r["visit"], r["status"]) for r in anna["visits"]] == [("2025-06-01", "registered")]
+    written = json.loads((out / "compare" / "anna_OD" / "2025-06-01" / "compare.json").read_text())
+    assert written["baseline"]["kind"] == written["followup"]["kind"] == "mosaic"
+
+    reports = [json.loads((out / i / "report.json").read_text()) for i in ("base", "follow")]
+    truths = [json.loads(p.with_suffix(".gt.json").read_text()) for p in (base, follow)]
+    S_base, S_follow = (source_to_mosaic(r, g) for r, g in zip(reports, truths, strict=True))
+    H_truth = S_base @ np.linalg.inv(S_follow)
+    mosaics = [cv2.imread(str(out / i / "mosaic.png")) for i in ("base", "follow")]
+    covered = [covered_area(m, r) for m, r in zip(mosaics, reports, strict=True)]
+    h, w = covered[0].shape
+    follow_on_base = cv2.warpPerspective(covered[1].astype(np.uint8), H_truth, (w, h)) > 0
+    answer = SimpleNamespace(
+        H_followup_to_baseline=np.asarray(written["H_followup_to_baseline"]),
+        Q_followup_to_baseline=None
+        if written["Q_followup_to_baseline"] is None
+        else np.asarray(written["Q_followup_to_baseline"]),
+        overlap=covered[0] & follow_on_base,
+    )
+    assert answer.overlap.mean() > 0.2
+    assert alignment_error(answer, H_truth) < MAX_ERROR_PX
+    assert written["regions"]  # the planted changes show
+
+    page = (out / "index.html").read_text()
+    assert "Visits compared" in page
+    for src in ("compare/anna_OD/2024-11-20/baseline.jpg",
+                "compare/anna_OD/2025-06-01/followup_warped.jpg",
+                "compare/anna_OD/2025-06-01/change_map.jpg"):  # fmt: skip
+        assert f"src='{src}'" in page and (out / src).is_file()
+    header = (out / "summary.csv").read_text().splitlines()[0]
+    assert header.endswith(",patient,visit")
