@@ -17,7 +17,9 @@ visits), relative to the detail's size, taken as the smallest over shifts of up 
 (a pixel of residual misalignment along a vessel is not a change), smoothed, and measured in
 units of its own robust spread over the overlap. Regions above `CHANGE_SIGMAS` whose excess
 reaches `MIN_EXCESS` are reported. `run_manifest` compares each patient's visits of a CSV
-onto the first (`--manifest`). See docs/compare.md.
+onto the first (`--manifest`) with `compare_patient`, which `mosaic batch` shares for its
+manifests' patients. An injected viewer (`mosaic.viz`, `--rerun`) is shown the two visits and
+the change map as layers of one space. See docs/compare.md.
 """
 
 from __future__ import annotations

@@ -106,3 +106,17 @@ def test_compare_layers_alpha():
     assert layers["followup"][0, :, 3].tolist() == [0, 0, 255, 255, 255]
     assert layers["followup"][0, 2, :3].tolist() == [30, 20, 10]  # BGR -> RGB
     assert layers["change"][0, :, 3].tolist() == [0, 0, 85, 170, 255]
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--manifest", "v.csv", "--rerun", "save"], "not with --manifest"),
+        (["a.png", "b.png", "--rerun", "serve", "--rerun-target", "x.rrd"], "only used with"),
+        (["a.png", "b.png", "--rerun", "nope"], "unknown --rerun mode"),
+    ],
+)
+def test_bad_viewer_arguments_of_compare_are_one_line_errors(tmp_path, args, fragment):
+    result = runner.invoke(app, ["compare", *args, "-o", str(tmp_path / "out")])
+    assert result.exit_code == 2, result.output
+    assert fragment in result.output and "Traceback" not in result.output
