@@ -542,6 +542,14 @@ def synth(
             "disc that moves about the frame, the face out of focus around it.",
         ),
     ] = False,
+    haze_frames: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            help="The last N frames seen through haze: a veil of scattered light (contrast "
+            "down to 25-55 %), slightly blurred.",
+        ),
+    ] = 0,
     curved_pairs: Annotated[
         int,
         typer.Option(
@@ -579,7 +587,8 @@ def synth(
         if hard and realistic:
             raise InputError("choose one of --hard and --realistic")
         video_only = {"--interlaced": interlaced, "--lens-reflexes": lens_reflexes,
-                      "--dust-spots": dust_spots, "--lens-rim": lens_rim}  # fmt: skip
+                      "--dust-spots": dust_spots, "--lens-rim": lens_rim,
+                      "--haze-frames": haze_frames}  # fmt: skip
         given = [name for name, value in video_only.items() if value]
         if followup_of is not None:
             given.append("--followup-of")
@@ -600,6 +609,7 @@ def synth(
             lens_reflexes=lens_reflexes,
             dust_spots=dust_spots,
             lens_rim=lens_rim,
+            haze_frames=haze_frames,
         )
         edit = None
         if followup_of is not None:  # the baseline's own photograph, changed

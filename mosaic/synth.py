@@ -122,6 +122,8 @@ class SynthParams:
     #   frame, which darken the light by 20-60 %
     lens_rim: bool = False  # a handheld fundus lens: the retina is seen only inside its rim, a
     #   disc that moves about the frame; outside, the face and lid, out of focus and lit
+    haze_frames: int = 0  # the last N frames seen through haze (a veil of scattered light:
+    #   contrast down to 25-55 %, lifted towards a bright grey, slightly blurred)
 
     @classmethod
     def hard(cls, **overrides: Any) -> SynthParams:
@@ -172,6 +174,7 @@ class SynthParams:
         w, h = self.size
         checks = [
             (self.n_frames >= 1, f"n_frames must be >= 1, got {self.n_frames}"),
+            (self.haze_frames >= 0, f"haze_frames must be >= 0, got {self.haze_frames}"),
             (w >= 16 and h >= 16, f"size must be at least 16x16, got {w}x{h}"),
             (self.max_step_px >= 0, f"max_step_px must be >= 0, got {self.max_step_px}"),
             (self.rotation_deg >= 0, f"rotation_deg must be >= 0, got {self.rotation_deg}"),
@@ -454,6 +457,18 @@ def _glare_blob(w: int, h: int, cx: float, cy: float, ax: float, ay: float) -> n
     return np.exp(-(((xx - cx) / ax) ** 2 + ((yy - cy) / ay) ** 2))
 
 
+HAZE_VEIL = (0.6, 0.15)  # share of scattered light: mean, and amplitude of its frame-to-frame swing
+HAZE_COLOUR = (170.0, 180.0, 200.0)  # BGR of the veil: bright, bluish grey
+HAZE_BLUR_PX = 1.5
+
+
+def _hazed(img: np.ndarray, i: int) -> np.ndarray:
+    """The frame through haze: a veil of scattered light over a slightly blurred view."""
+    veil = HAZE_VEIL[0] + HAZE_VEIL[1] * np.sin(i)
+    blurred = cv2.GaussianBlur(img, (0, 0), HAZE_BLUR_PX)
+    return blurred * (1.0 - veil) + veil * np.array(HAZE_COLOUR, np.float32)
+
+
 def _add_glare(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """A bright, saturating specular reflection (soft ellipse) somewhere in the frame."""
     h, w = img.shape[:2]
@@ -714,6 +729,8 @@ def render_frames(
                 img = img + reflexes.image(i, w, h)[..., None]
             if params.gamma_jitter > 0:
                 img = 255.0 * (np.clip(img, 0.0, 255.0) / 255.0) ** float(real.gamma[i])
+            if i >= params.n_frames - params.haze_frames:
+                img = _hazed(img, i)
             if real.noise_sigma[i] > 0:
                 img += rng.normal(0.0, real.noise_sigma[i], img.shape).astype(np.float32)
         yield np.clip(img + 0.5, 0, 255).astype(np.uint8), H_frame_to_source

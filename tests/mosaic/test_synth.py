@@ -565,3 +565,24 @@ def test_a_lens_rim_shows_the_retina_inside_a_moving_disc_and_the_face_outside()
             assert np.abs(a[outside].astype(int) - b[outside]).mean() > 15
     travel = np.linalg.norm(rim.centres.max(axis=0) - rim.centres.min(axis=0))
     assert travel > 20, travel
+
+
+def test_haze_veils_the_last_frames_only_and_keeps_the_truth():
+    """Haze (`haze_frames`) lowers the last frames' contrast to the veil's share (25-55 % of
+    the light left to the view) and lifts them towards a bright grey; earlier frames, and every
+    frame's truth, are those of the video without it."""
+    source = cv2.imread(str(sample_image_path()))
+    params = SynthParams.realistic(n_frames=5, size=(330, 175), seed=4, noise_sigma=0.0,
+                                   noise_jitter=0.0, rim_overlap=0.0)  # fmt: skip
+    hazy = SynthParams(**{**params.__dict__, "haze_frames": 2})
+    for i, ((a, H_a), (b, H_b)) in enumerate(
+        zip(render_frames(source, params), render_frames(source, hazy), strict=True)
+    ):
+        np.testing.assert_array_equal(H_a, H_b)
+        if i < 3:
+            np.testing.assert_array_equal(a, b)
+            continue
+        green_a, green_b = a[..., 1].astype(float), b[..., 1].astype(float)
+        # contrast: at most the view's share (1 - veil <= 0.55), the blur lowers it more
+        assert green_b.std() < 0.55 * green_a.std()
+        assert green_b.mean() > green_a.mean() + 40  # lifted towards the veil's grey (180)
