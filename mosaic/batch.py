@@ -883,7 +883,7 @@ def run_batch(
     tally = {s: sum(r["status"] == s for r in ordered) for s in (OK, FAILED, INTERRUPTED, NOT_RUN)}
     patients = None
     if any(t.patient for t in tasks) and not interrupted:
-        patients = compare_patients(tasks, ordered, out, config, echo)
+        patients = compare_patients(tasks, ordered, out, config, echo, rerun)
         write_summary(out, ordered, meta, patients)
     return BatchResult(ordered, interrupted, tally, patients)
 
@@ -894,12 +894,18 @@ def compare_patients(
     out: Path,
     config: Config,
     echo: Callable[[str], None],
+    rerun: str = "off",
 ) -> dict[str, Any]:
     """Each patient's (eye's) later visits compared onto the first visit's mosaic, as
-    `mosaic compare --manifest` does (`compare.compare_patient`), into OUT/compare/; a visit
-    whose video failed is a failed row. Returns the patients' summary entries."""
+    `mosaic compare --manifest` does (`compare.compare_patient`), into OUT/compare/ (with
+    `rerun` save, each comparison's layers in its folder's recording.rrd); a visit whose
+    video failed is a failed row. Returns the patients' summary entries."""
     from mosaic.compare import compare_patient, group_visits, load_visit
     from mosaic.features import FeatureExtractor
+    from mosaic.viz import make_compare_viewer
+
+    def viewer(folder: Path) -> Any:
+        return make_compare_viewer("save", folder / RECORDING)
 
     row_of_task = {t.id: r for t, r in zip(tasks, rows, strict=True)}
     named = ((t.patient, t.visit or "", t) for t in tasks if t.patient)
@@ -915,7 +921,13 @@ def compare_patients(
     patients = {}
     for patient, visits in group_visits(named, "manifest").items():
         patients[patient] = compare_patient(
-            patient, visits, out / COMPARISONS, load, config, extractor
+            patient,
+            visits,
+            out / COMPARISONS,
+            load,
+            config,
+            extractor,
+            viewer if rerun == "save" else None,
         )
         for row in patients[patient]["visits"]:
             detail = f"{row['regions']} changed region(s)" if "regions" in row else row["reason"]

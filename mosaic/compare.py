@@ -780,12 +780,14 @@ def compare_patient(
     load: Callable[[T, str, Path], Visit],
     config: Config,
     extractor: FeatureExtractor,
+    viewer: Callable[[Path], ComparisonViewer] | None = None,
 ) -> dict[str, Any]:
     """One patient's later visits compared onto the first, into `out_dir/<patient>/<visit>/`
     (as `mosaic compare` writes them, with thumbnails for the index); `load(item, name,
-    folder)` makes each visit (`load_visit`, or a batch's built mosaic). A visit that cannot
-    be loaded or compared is its row's status. Returns the patient's summary entry:
-    `{"baseline": first visit, "visits": [row per later visit]}`."""
+    folder)` makes each visit (`load_visit`, or a batch's built mosaic); `viewer(folder)`, if
+    given, a viewer shown each comparison (`mosaic batch --rerun save`: a recording in its
+    folder). A visit that cannot be loaded or compared is its row's status. Returns the
+    patient's summary entry: `{"baseline": first visit, "visits": [row per later visit]}`."""
     folder = _make_folder(out_dir / _safe(patient))
     (first, first_item), later = visits[0], visits[1:]
     rows: list[dict[str, Any]] = []
@@ -815,6 +817,12 @@ def compare_patient(
             for name in ("followup_warped", "change_map"):
                 image = cv2.imread(str(visit_dir / f"{name}.png"))
                 write_image(visit_dir / f"{name}.jpg", thumbnail(image, THUMB_PX))
+            if viewer is not None:
+                shown = viewer(visit_dir)
+                try:
+                    shown.comparison(baseline.image, comparison, written)
+                finally:
+                    shown.close()
         log.info("%s %s: %s", patient, visit, row["status"])
         rows.append(row)
     return entry

@@ -578,7 +578,8 @@ def test_batch_compares_a_patients_visits_onto_the_first(tmp_path):
         "video,patient,eye,visit\nfollow.mp4,anna,OD,2025-06-01\nbase.mp4,anna,OD,2024-11-20\n"
     )
     out = tmp_path / "out"
-    result = runner.invoke(app(), ["batch", str(manifest), "-o", str(out), "--workers", "1"])
+    args = ["batch", str(manifest), "-o", str(out), "--workers", "1", "--rerun", "save"]
+    result = runner.invoke(app(), args)
     assert result.exit_code == 0, result.output
     assert "1 patients, 1 later visits: 1 compared, 0 not" in result.output
     summary = json.loads((out / "summary.json").read_text())
@@ -615,3 +616,12 @@ def test_batch_compares_a_patients_visits_onto_the_first(tmp_path):
         assert f"src='{src}'" in page and (out / src).is_file()
     header = (out / "summary.csv").read_text().splitlines()[0]
     assert header.endswith(",patient,visit")
+    # --rerun save: the comparison's layers in its folder, the follow-up as written
+    from tests.mosaic.test_viz import read_rrd
+    from tests.mosaic.test_viz_compare import layer_image
+
+    visit = out / "compare" / "anna_OD" / "2025-06-01"
+    shown = layer_image(read_rrd(visit / "recording.rrd")["compare/followup"])
+    warped = cv2.imread(str(visit / "followup_warped.png"))
+    assert shown.shape == (*mosaics[0].shape[:2], 4)
+    assert np.array_equal(shown[..., :3], warped[..., ::-1])
