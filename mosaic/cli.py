@@ -12,7 +12,6 @@ from __future__ import annotations
 import sys
 
 try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no traceback
-    import csv
     import json
     import logging
     import os
@@ -690,15 +689,9 @@ def _pair_names(fixed: Path, moving: Path) -> dict[str, str]:
 
 def _read_pairs(path: Path) -> list[tuple[Path, Path] | str]:
     """The pairs of a CSV (paths relative to it); a row without both paths is its error."""
-    if not path.is_file():
-        raise InputError(f"pairs file not found: {path}")
-    try:
-        with path.open(newline="", encoding="utf-8") as fh:
-            rows = list(csv.DictReader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"cannot read pairs file {path}: {exc}") from exc
-    if not rows or not {"fixed", "moving"} <= set(rows[0]):
-        raise InputError(f"{path} must be a CSV with columns fixed,moving and at least one row")
+    from mosaic.io import read_csv_rows
+
+    rows = read_csv_rows(path, "pairs file", ("fixed", "moving"))
     base = path.parent
     return [
         (base / r["fixed"].strip(), base / r["moving"].strip())

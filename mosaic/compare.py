@@ -24,7 +24,6 @@ the change map as layers of one space. See docs/compare.md.
 
 from __future__ import annotations
 
-import csv
 import html
 import json
 import logging
@@ -38,11 +37,13 @@ import cv2
 import numpy as np
 
 from mosaic.config import Config, for_photographs
-from mosaic.errors import InputError, MosaicError, OutputError
+from mosaic.errors import InputError, MosaicError
 from mosaic.features import FeatureExtractor
 from mosaic.io import (
     IMAGE_READ_SUFFIXES,
+    make_folder,
     natural_key,
+    read_csv_rows,
     read_image,
     write_image,
     write_json,
@@ -654,15 +655,6 @@ def change_picture(base: np.ndarray, comparison: Comparison) -> np.ndarray:
 PICTURES = ("followup_warped.png", "checkerboard.png", "overlay.png", "change_map.png")
 
 
-def _make_folder(folder: Path) -> Path:
-    folder = Path(folder).expanduser()
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"cannot create output folder {folder}: {exc.strerror or exc}") from exc
-    return folder
-
-
 def _inputs(*visits: Visit) -> dict[str, Any]:
     return {
         v.name: {
@@ -707,7 +699,7 @@ def run_compare(
     change map shown by `viewer` (`mosaic.viz`: layers of one space). A refusal
     (`NotComparableError`) writes `compare.json` with status "refused" and its reason, then
     raises."""
-    out_dir = _make_folder(out_dir)
+    out_dir = make_folder(out_dir)
     extractor = FeatureExtractor(config.features)
     baseline = load_visit(baseline_path, "baseline", out_dir, config, extractor)
     followup = load_visit(followup_path, "followup", out_dir, config, extractor)
@@ -750,15 +742,7 @@ def read_manifest(path: Path) -> dict[str, list[tuple[str, Path]]]:
     """Each patient's visits, earliest first (`group_visits`), from a CSV with columns
     patient, visit, path (paths relative to the CSV)."""
     path = Path(path).expanduser()
-    if not path.is_file():
-        raise InputError(f"manifest not found: {path}")
-    try:
-        with path.open(newline="", encoding="utf-8") as fh:
-            rows = list(csv.DictReader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"cannot read manifest {path}: {exc}") from None
-    if not rows or not set(MANIFEST_COLUMNS) <= set(rows[0]):
-        raise InputError(f"{path} must be a CSV with columns {','.join(MANIFEST_COLUMNS)}")
+    rows = read_csv_rows(path, "manifest", MANIFEST_COLUMNS)
     visits: list[tuple[str, str, Path]] = []
     for i, row in enumerate(rows):
         values = [(row.get(c) or "").strip() for c in MANIFEST_COLUMNS]
@@ -788,12 +772,12 @@ def compare_patient(
     given, a viewer shown each comparison (`mosaic batch --rerun save`: a recording in its
     folder). A visit that cannot be loaded or compared is its row's status. Returns the
     patient's summary entry: `{"baseline": first visit, "visits": [row per later visit]}`."""
-    folder = _make_folder(out_dir / _safe(patient))
+    folder = make_folder(out_dir / _safe(patient))
     (first, first_item), later = visits[0], visits[1:]
     rows: list[dict[str, Any]] = []
     entry = {"baseline": first, "visits": rows}
     try:
-        base_dir = _make_folder(folder / _safe(first))
+        base_dir = make_folder(folder / _safe(first))
         baseline = load(first_item, "baseline", base_dir)
     except MosaicError as exc:
         rows.extend({"visit": v, "status": "failed", "reason": f"baseline: {exc}"}
@@ -803,7 +787,7 @@ def compare_patient(
     for visit, item in later:
         row: dict[str, Any] = {"visit": visit, "folder": f"{_safe(patient)}/{_safe(visit)}"}
         try:
-            visit_dir = _make_folder(folder / _safe(visit))
+            visit_dir = make_folder(folder / _safe(visit))
             followup = load(item, "followup", visit_dir)
             comparison = compare_visits(baseline, followup, config, extractor)
         except NotComparableError as exc:
@@ -833,7 +817,7 @@ def run_manifest(manifest: Path, out_dir: Path, config: Config) -> dict[str, Any
     mosaic into `OUT/<patient>/<visit>/`), a `summary.json` and an `index.html` showing each
     patient's visits side by side with the change maps."""
     patients = read_manifest(manifest)
-    out_dir = _make_folder(out_dir)
+    out_dir = make_folder(out_dir)
     extractor = FeatureExtractor(config.features)
 
     def load(path: Path, name: str, folder: Path) -> Visit:

@@ -53,7 +53,7 @@ from mosaic.datasets import (
     fire_truth,
     read_matrix,
 )
-from mosaic.errors import ConfigError, InputError, OutputError
+from mosaic.errors import ConfigError, InputError
 from mosaic.features import DETECTORS, FeatureExtractor
 from mosaic.fidelity import (
     FidelityScores,
@@ -62,7 +62,7 @@ from mosaic.fidelity import (
     oracle_fidelity,
     prepare_source,
 )
-from mosaic.io import UNDECODABLE, atomic_path, read_image, write_json, write_text
+from mosaic.io import UNDECODABLE, atomic_path, make_folder, read_image, write_json, write_text
 from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicResult
 from mosaic.preprocess import field_of_view_mask, prepare, retina_disc, scale_matrix, to_gray
@@ -659,20 +659,11 @@ def format_pair_tables(
 # --------------------------------------------------------------------------------------------
 
 
-def _prepare_out(out_dir: str | Path) -> Path:
-    out = Path(out_dir).expanduser()
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"cannot create output folder {out}: {exc.strerror or exc}") from exc
-    return out
-
-
 def write_answer_tables(
     rows: Sequence[dict[str, Any]], summary: Sequence[dict[str, Any]], out_dir: str | Path
 ) -> Path:
     """`score_answers`' tables as `answers_pairs.csv` and `answers.csv` in `out_dir`."""
-    out = _prepare_out(out_dir)
+    out = make_folder(out_dir)
     write_csv(out / "answers_pairs.csv", rows)
     write_csv(out / "answers.csv", summary)
     return out
@@ -811,7 +802,7 @@ def write_pair_outputs(
     """summary.csv / summary.json (per detector), pairs.csv (per pair), the two plots and, for
     FIRE pairs, models.csv (per detector and FIRE_VARIANTS fit; also `models` in the JSON) and
     cumulative_error_models.png."""
-    out = _prepare_out(out_dir)
+    out = make_folder(out_dir)
     models = summarize_models(results)
     written = [
         write_csv(out / "summary.csv", summary),
@@ -851,7 +842,7 @@ def run_pair_evaluation(
     config = for_photographs(config)
     if not 0.0 < scale <= 4.0:
         raise InputError(f"scale must be in (0, 4], got {scale}")
-    _prepare_out(out_dir)
+    make_folder(out_dir)
     extractors = make_extractors(config, detectors, explicit)
     results = evaluate_pairs(dataset, extractors, scale, max_pairs, progress)
     summary = summarize_pairs(results)
@@ -1576,7 +1567,7 @@ def write_video_outputs(
 ) -> list[Path]:
     """videos.csv (per video), video_summary.csv, video_differences.csv (`compare_methods`,
     with two methods or more) / video_evaluation.json and the plots."""
-    out = _prepare_out(out_dir)
+    out = make_folder(out_dir)
     rows = [
         {
             **{k: v for k, v in dataclasses.asdict(r).items() if k not in _VIDEO_ROW_EXCLUDED},
@@ -1618,7 +1609,7 @@ def run_video_evaluation(
     `fidelity`, each video's oracle is computed once and shared by its runs.
     """
     videos = find_videos(paths)
-    report_dir = _prepare_out(Path(out_dir).expanduser() / "reports")
+    report_dir = make_folder(Path(out_dir).expanduser() / "reports")
     extractors = make_extractors(config, detectors, explicit)
     results, reports = [], []
     for video, stem in zip(videos, _unique_stems(videos), strict=True):

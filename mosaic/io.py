@@ -10,6 +10,7 @@ Frames are streamed one at a time; a frame that cannot be decoded is reported as
 from __future__ import annotations
 
 import contextlib
+import csv
 import json
 import logging
 import os
@@ -572,6 +573,32 @@ def write_json(path: str | Path, obj: Any) -> Path:
     text = json.dumps(obj, default=_json_default, indent=2)
     write_text(p, text + "\n")
     return p
+
+
+def make_folder(folder: str | Path) -> Path:
+    """The output folder, created with its parents where missing; an `OutputError` if not."""
+    folder = Path(folder).expanduser()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create output folder {folder}: {exc.strerror or exc}") from exc
+    return folder
+
+
+def read_csv_rows(path: str | Path, what: str, columns: tuple[str, ...]) -> list[dict[str, str]]:
+    """The rows of a CSV file (`what` names it in errors) that has at least `columns` and one
+    row; an `InputError` naming the file otherwise."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise InputError(f"{what} not found: {path}")
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"cannot read {what} {path}: {exc}") from None
+    if not rows or not set(columns) <= set(rows[0]):
+        raise InputError(f"{path} must be a CSV with columns {','.join(columns)} and a row")
+    return rows
 
 
 def sample_image_path() -> Path:
