@@ -46,7 +46,7 @@ class Detector(Protocol):
     """What the pipeline needs of a detector."""
 
     name: str
-    # runs on several cores at once: registering meanwhile would compete (`pipeline.Turns`)
+    # runs on several cores at once: registering meanwhile would compete (`scheduling.Turns`)
     takes_every_core: bool
 
     def detect(self, gray: np.ndarray, mask: np.ndarray) -> tuple[Keypoints, np.ndarray]:
@@ -206,7 +206,7 @@ class GlamPointsDetector:
     @property
     def takes_every_core(self) -> bool:
         """The network runs on torch's CPU threads, more than one: registering meanwhile
-        would compete with it for the cores (`pipeline.Turns`)."""
+        would compete with it for the cores (`scheduling.Turns`)."""
         import torch
 
         return self._model.device.type == "cpu" and torch.get_num_threads() > 1

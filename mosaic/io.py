@@ -615,7 +615,7 @@ _END = object()
 
 class Lookahead(Iterator[T]):
     """Iterate `items` while a background thread produces the next ones, up to `depth` ahead,
-    as long as `ahead` is set; it may change between items (`mosaic.pipeline`'s overlap trial).
+    as long as `ahead` is set; it may change between items (`mosaic.scheduling`'s overlap trial).
 
     The items are produced in order by one thread at a time (the caller's, or the one worker's),
     so a generator is safe here. OpenCV and torch release the GIL, so producing item i+1

@@ -13,7 +13,8 @@ import torch
 
 from mosaic.config import Config, with_overrides
 from mosaic.io import Frame, Lookahead, open_frames
-from mosaic.pipeline import MosaicBuilder, MosaicResult, OverlapTrial, Turns
+from mosaic.pipeline import MosaicBuilder, MosaicResult
+from mosaic.scheduling import OverlapTrial, Turns
 from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import (
