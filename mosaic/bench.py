@@ -30,7 +30,8 @@ from mosaic.config import Config, with_overrides
 from mosaic.errors import ConfigError
 from mosaic.features import FeatureExtractor, resolve_precision
 from mosaic.io import Frame, sample_image_path
-from mosaic.pipeline import STAGES, FrameRecord
+from mosaic.pipeline import FrameRecord
+from mosaic.report import STAGES
 from mosaic.runner import Outputs, run_video
 from mosaic.synth import SynthParams, write_synthetic_video
 from mosaic.viz import Viewer

@@ -64,12 +64,13 @@ from mosaic.fidelity import (
 )
 from mosaic.io import UNDECODABLE, atomic_path, make_folder, read_image, write_json, write_text
 from mosaic.matching import distance_matrix, match_descriptors
-from mosaic.pipeline import FAILED, REGISTERED, SKIPPED, MosaicResult
+from mosaic.pipeline import MosaicResult
 from mosaic.preprocess import field_of_view_mask, prepare, retina_disc, scale_matrix, to_gray
 from mosaic.quality import spearman
 from mosaic.refine import fit_pair
 from mosaic.registration import MODELS as MOTION_MODELS
 from mosaic.registration import apply_homography, apply_quadratic, estimate_homography
+from mosaic.report import FAILED, REGISTERED, SKIPPED
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 from mosaic.runner import reread_frames as _reread
 from mosaic.synth import corner_error, gt_path_for, load_ground_truth, relative_homographies

@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,10 +31,9 @@ from mosaic.compose import (
     FrameSource,
     LiveCompositor,
     ReadAhead,
-    photometry_report,
     render_segments,
 )
-from mosaic.config import Config, config_to_dict
+from mosaic.config import Config
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features, to_frame_pixels
 from mosaic.io import UNDECODABLE, Frame, Lookahead
@@ -62,15 +60,13 @@ from mosaic.preprocess import (
 )
 from mosaic.quality import frame_vs_canvas
 from mosaic.refine import fit_pair, lk_texture
-from mosaic.registration import MODELS, Registration, estimate_motion
+from mosaic.registration import Registration, estimate_motion
+from mosaic.report import FAILED, REGISTERED, SKIPPED, ReportInputs, build_report
 from mosaic.scheduling import OverlapTrial, Turns
 from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
 
 log = logging.getLogger(__name__)
-
-STAGES = ("preprocess", "detect", "describe", "match", "estimate", "compose")
-REGISTERED, FAILED, SKIPPED = "registered", "failed", "skipped"
 
 
 @dataclass
@@ -789,7 +785,30 @@ class MosaicBuilder:
             for s in self._segments
             if s.canvas.n_frames
         ]
-        return MosaicResult(mosaics, build_report(self, mosaics, interrupted))
+        return MosaicResult(mosaics, build_report(self.summary_inputs(), mosaics, interrupted))
+
+    def summary_inputs(self) -> ReportInputs:
+        """What the report reads of the builder, as it is now (a read-only view)."""
+        return ReportInputs(
+            records=self.records,
+            started=self._started,
+            config=self.config,
+            detector=self.extractor.detector.name,
+            precision=getattr(self.extractor.detector, "precision", None),
+            overlap=self.overlap.chosen,
+            stopped=self.stopped,
+            field_offset_px=self._fields.median_offset_px,
+            looks_interlaced=self._fields.looks_interlaced,
+            H_frame_to_work=self._S,
+            retina_diameter_px=self._retina_diameter_px,
+            tracker_stats=[s.tracker.stats() for s in self._segments],
+            joined_stats=self._joined_stats,
+            rerendered=any(s.refined_poses for s in self._segments),
+            blends=[s.canvas.blend for s in self._segments],
+            photometry=self._photometry,
+            frame_shape=self._compositor.frame_shape,
+            gain_solution=self._gain_solution,
+        )
 
 
 def _circle_in_frame(circle: Circle, H_frame_to_work: np.ndarray | None) -> Circle:
@@ -798,27 +817,6 @@ def _circle_in_frame(circle: Circle, H_frame_to_work: np.ndarray | None) -> Circ
         return circle
     s, tx, ty = H_frame_to_work[0, 0], H_frame_to_work[0, 2], H_frame_to_work[1, 2]
     return (circle[0] - tx) / s, (circle[1] - ty) / s, circle[2] / s
-
-
-def _leading_run(statuses: list[str]) -> int:
-    """Registered frames from the first one until the first failure (skipped frames ignored)."""
-    count = 0
-    for status in statuses:
-        if status == FAILED:
-            break
-        count += status == REGISTERED
-    return count
-
-
-def _longest_run(statuses: list[str]) -> int:
-    best = run = 0
-    for status in statuses:
-        if status == FAILED:
-            run = 0
-        elif status == REGISTERED:
-            run += 1
-            best = max(best, run)
-    return best
 
 
 def _note_registration(record: FrameRecord, track: Track) -> None:
@@ -836,147 +834,6 @@ def _note_registration(record: FrameRecord, track: Track) -> None:
     record.coverage = registration.coverage
     record.reference = track.reference_index
     record.by_flow = track.by_flow
-
-
-def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> dict[str, Any]:
-    H_to_canvas = None
-    if record.H_frame_to_ref is not None and record.segment in mosaics:
-        H = mosaics[record.segment].H_ref_to_mosaic @ record.H_frame_to_ref
-        H_to_canvas = (H / H[2, 2]).tolist()
-    entry: dict[str, Any] = {
-        "index": record.index,
-        "status": record.status,
-        "segment": record.segment,
-        "H_to_canvas": H_to_canvas,
-        "n_keypoints": record.n_keypoints,
-        "n_matches": record.n_matches,
-        "n_inliers": record.n_inliers,
-        "reproj_error_px": None
-        if np.isnan(record.reproj_error_px)
-        else round(record.reproj_error_px, 3),
-        "quality": None if np.isnan(record.quality) else round(record.quality, 3),
-        "flagged": record.flagged,
-        "deinterlaced": record.deinterlaced,
-        "reflexes": record.reflexes,
-        "lens_rim": None if record.lens_rim is None else [round(v, 1) for v in record.lens_rim],
-        "blurred": record.blurred is not None,
-        "blended": record.status == REGISTERED and record.blurred is None,
-        "by_flow": record.by_flow,
-        "gain": None if record.gain is None else round(record.gain, 4),
-        "time_ms": round(record.time_ms, 2),
-    }
-    if record.status == REGISTERED and record.reference is not None:
-        entry["reference"] = record.reference
-        entry["model"] = record.model
-        entry["coverage"] = None if np.isnan(record.coverage) else round(record.coverage, 3)
-    if record.reason is not None:
-        entry["reason"] = record.reason
-    return entry
-
-
-def _model_counts(records: list[FrameRecord]) -> dict[str, int]:
-    """Registered frames per motion model (a segment's first frame has none), in MODELS order."""
-    counts = Counter(r.model for r in records if r.status == REGISTERED and r.reference is not None)
-    return {m: counts[m] for m in MODELS if counts[m]}
-
-
-def _tracking_summary(builder: MosaicBuilder) -> dict[str, Any]:
-    """Keyframes, relocalisations, loop closures and refinement residuals over all segments."""
-    per_segment = [s.tracker.stats() for s in builder._segments] + builder._joined_stats
-    totals: dict[str, Any] = {}
-    counted = ("keyframes", "relocalised", "placed_by_previous", "placed_by_flow", "loop_closures",
-               "loop_attempts")  # fmt: skip
-    for key in (*counted, "extra_links", "tracked_registrations", "perspective_relaxed"):
-        values = [stats[key] for stats in per_segment if key in stats]
-        if values:
-            totals[key] = int(sum(values))
-    refinements = [stats.get("refinement") for stats in per_segment]
-    if any(refinements):
-        totals["refinement"] = refinements
-    totals["rerendered"] = any(s.refined_poses for s in builder._segments)
-    totals["joined_segments"] = len(builder._joined_stats)
-    return totals
-
-
-def build_report(
-    builder: MosaicBuilder, mosaics: list[SegmentMosaic], interrupted: bool
-) -> dict[str, Any]:
-    """The JSON-ready report: summary, configuration and one entry per frame."""
-    records = builder.records
-    by_index = {m.index: m for m in mosaics}
-    statuses = [r.status for r in records]
-    attempts = [r for r in records if r.status != SKIPPED and r.n_matches > 0]
-    scores = [r.quality for r in records if r.status == REGISTERED and not np.isnan(r.quality)]
-    stage_ms = {
-        stage: round(float(np.mean(vals)), 3)
-        for stage in STAGES
-        if (vals := [r.stage_ms[stage] for r in records if stage in r.stage_ms])
-    }
-    elapsed = time.perf_counter() - builder._started
-    summary = {
-        "frames_read": len(records),
-        "registered": statuses.count(REGISTERED),
-        "failed": statuses.count(FAILED),
-        "skipped": statuses.count(SKIPPED),
-        "frames_until_failure": _leading_run(statuses),
-        "longest_registered_run": _longest_run(statuses),
-        "segments": len(mosaics),
-        "mean_matches": round(float(np.mean([r.n_matches for r in attempts])), 2)
-        if attempts
-        else 0.0,
-        "mean_inliers": round(float(np.mean([r.n_inliers for r in attempts])), 2)
-        if attempts
-        else 0.0,
-        "quality": round(float(np.median(scores)), 3) if scores else None,
-        "quality_flagged": sum(r.flagged for r in records if r.status == REGISTERED),
-        "deinterlaced": sum(r.deinterlaced for r in records),
-        "reflex_frames": sum(r.reflexes for r in records),
-        "lens_rim_frames": sum(r.lens_rim is not None for r in records),
-        "blurred_registered": sum(r.blurred is not None for r in records if r.status == REGISTERED),
-        "field_offset_px": None
-        if builder._fields.median_offset_px is None
-        else round(builder._fields.median_offset_px, 2),
-        "looks_interlaced": builder._fields.looks_interlaced,
-        "total_time_s": round(elapsed, 3),
-        "fps": round(len(records) / elapsed, 2) if elapsed > 0 else 0.0,
-        "mean_stage_ms": stage_ms,
-        "detector": builder.extractor.detector.name,
-        # GLAMpoints' network precision ("auto" resolved: figures differ between the two)
-        "precision": getattr(builder.extractor.detector, "precision", None),
-        "working_scale": 1.0 if builder._S is None else round(float(builder._S[0, 0]), 4),
-        "retina_diameter_px": None
-        if builder._retina_diameter_px is None
-        else round(builder._retina_diameter_px, 1),
-        "strategy": builder.config.pipeline.strategy,
-        "overlap": builder.overlap.chosen,
-        "models": _model_counts(records),
-        "tracking": _tracking_summary(builder),
-        "on_failure": builder.config.pipeline.on_failure,
-        "stopped_at_failure": builder.stopped,
-        "interrupted": interrupted,
-    }
-    return {
-        "summary": summary,
-        "segments": [
-            {
-                "index": s.index,
-                "frames": s.n_frames,
-                "width": int(s.image.shape[1]),
-                "height": int(s.image.shape[0]),
-                "blend": builder._segments[s.index].canvas.blend,
-            }
-            for s in mosaics
-        ],
-        "compose": photometry_report(
-            builder.config.compose,
-            builder._photometry,
-            builder._compositor.frame_shape,
-            {r.index: r.gain for r in records if r.gain is not None},
-            builder._gain_solution,
-        ),
-        "config": config_to_dict(builder.config),
-        "frames": [_frame_entry(r, by_index) for r in records],
-    }
 
 
 def register_pair(
