@@ -44,7 +44,7 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
         read_image,
         write_image,
     )
-    from mosaic.pipeline import register_pair
+    from mosaic.pairs import register_pair
     from mosaic.refine import warp_check
     from mosaic.registration import MODELS
     from mosaic.runner import Outputs, run_video

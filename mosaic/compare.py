@@ -3,7 +3,7 @@
 Each visit is a video (its mosaic built with the configuration, `runner.run_video`), a mosaic
 written by `mosaic build` (its report beside it gives the covered area) or a photograph. The
 follow-up is registered onto the baseline with the pair path of `mosaic register`
-(`pipeline.register_pair`: working size from the retina, refinement, the quadratic model where
+(`pairs.register_pair`: working size from the retina, refinement, the quadratic model where
 it pays, colour against angiogram), each image black outside its covered area, then again
 restricted to the overlap found (`RESTRICT_BELOW`); visits at different scales (a photograph
 and a mosaic, two videos' magnifications) are tried at a few relative scales
@@ -49,7 +49,7 @@ from mosaic.io import (
     write_json,
     write_text,
 )
-from mosaic.pipeline import register_pair
+from mosaic.pairs import register_pair
 from mosaic.preprocess import retina_disc
 from mosaic.refine import fixed_to_moving_map
 from mosaic.registration import apply_homography, apply_quadratic, quadratic_terms

@@ -37,7 +37,7 @@ from mosaic.config import Config
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features, to_frame_pixels
 from mosaic.io import UNDECODABLE, Frame, Lookahead
-from mosaic.matching import Matches, match_descriptors
+from mosaic.matching import Matches
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import (
     Circle,
@@ -49,18 +49,15 @@ from mosaic.preprocess import (
     ReflexMask,
     Spots,
     first_field,
-    inverted_as,
     outside_rim_removed,
-    pair_polarities,
-    pair_working_scales,
     prepare,
     resize_by,
     retina_disc,
     working_scale,
 )
 from mosaic.quality import frame_vs_canvas
-from mosaic.refine import fit_pair, lk_texture
-from mosaic.registration import Registration, estimate_motion
+from mosaic.refine import lk_texture
+from mosaic.registration import Registration
 from mosaic.report import FAILED, REGISTERED, SKIPPED, ReportInputs, build_report
 from mosaic.scheduling import OverlapTrial, Turns
 from mosaic.tracking import Track, Tracker, make_tracker
@@ -834,108 +831,3 @@ def _note_registration(record: FrameRecord, track: Track) -> None:
     record.coverage = registration.coverage
     record.reference = track.reference_index
     record.by_flow = track.by_flow
-
-
-def register_pair(
-    fixed: np.ndarray,
-    moving: np.ndarray,
-    config: Config,
-    extractor: FeatureExtractor,
-    model: str | None = None,
-) -> Registration:
-    """Register one image pair: the result's `H_cur_to_prev` maps `moving` into `fixed` (full
-    size pixels); `model` (default `[registration] model`) as in `estimate_motion`, or
-    "quadratic" (`Q_cur_to_prev`, 2x6; "auto" also chooses it where it beats the homography).
-
-    Each image is registered at its working size (its retina's diameter at `[preprocess]
-    fov_diameter_px` when it shows a whole one, else `max_side_px`; `working_scales`), then
-    refined through `[registration] refine_levels` levels up to the full resolution
-    (`refine.refine_pair`); a refinement that loses the matches keeps the coarse answer. A
-    pair of opposite vessel polarities (an angiogram and a colour photograph, `[preprocess]
-    vessel_polarity`) is also registered with the bright-vessel one inverted, and the
-    registration with more inliers answers (`Registration.inverted` says which). With
-    "auto", photographs of a whole retina are always refined (homography or quadratic, which
-    the working size cannot tell apart); other views keep a simpler coarse model."""
-    model = model or config.registration.model
-    invert = pair_polarities(fixed, moving) if config.preprocess.vessel_polarity else (False,) * 2
-    as_is = _register_pair(fixed, moving, config, extractor, model)
-    if not any(invert):
-        return as_is
-    log.info(
-        "vessels of opposite polarity: registered again, the %s image inverted",
-        "fixed" if invert[0] else "moving",
-    )
-    inverted = dataclasses.replace(
-        _register_pair(*inverted_as(fixed, moving, invert), config, extractor, model),
-        inverted=invert[::-1],
-    )
-    registered = [reg for reg in (inverted, as_is) if reg.ok]
-    return max(registered, key=lambda reg: reg.n_inliers) if registered else inverted
-
-
-def _register_pair(
-    fixed: np.ndarray,
-    moving: np.ndarray,
-    config: Config,
-    extractor: FeatureExtractor,
-    model: str,
-) -> Registration:
-    """`register_pair` of the two images as they are."""
-    pre = config.preprocess
-    discs = retina_disc(fixed), retina_disc(moving)  # working sizes, model, overlap
-    scale_fixed, scale_moving = pair_working_scales(
-        fixed, moving, pre.max_side_px, pre.fov_diameter_px, discs
-    )
-    fixed_work, S_fixed = resize_by(fixed, scale_fixed)
-    moving_work, S_moving = resize_by(moving, scale_moving)
-    features_fixed = extractor(prepare(fixed_work, pre))
-    features_moving = extractor(prepare(moving_work, pre))
-    matches = match_descriptors(
-        features_fixed.descriptors, features_moving.descriptors, config.matching
-    )
-    xy_moving = features_moving.xy[matches.idx_b]
-    reg = estimate_motion(
-        xy_moving,
-        features_fixed.xy[matches.idx_a],
-        config.registration,
-        moving_work.shape[:2],
-        model,
-    )
-    S_fixed, S_moving = (np.eye(3) if S is None else S for S in (S_fixed, S_moving))
-    scales = (float(S_moving[0, 0]), float(S_fixed[0, 0]))
-    reg = dataclasses.replace(reg, working_scales=scales)
-    blank = [name for name, f in (("fixed", features_fixed), ("moving", features_moving)) if not f]
-    if blank:  # say why: a blank, black or out-of-focus image has nothing to match
-        images = " and ".join(blank) + (" images" if len(blank) > 1 else " image")
-        reason = f"no textured keypoints in the {images}"
-        return dataclasses.replace(reg, H_cur_to_prev=None, reason=reason)
-    if reg.H_cur_to_prev is None:
-        return reg
-    H = np.linalg.inv(S_fixed) @ reg.H_cur_to_prev @ S_moving
-    error_px = reg.reproj_error_px / scales[1]  # measured in the fixed working image
-    reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2], reproj_error_px=error_px)
-    if model not in ("homography", "quadratic", "auto"):
-        return reg  # a simpler model was asked for: nothing to refine it towards
-    if model == "auto" and reg.model != "homography" and discs[1] is None:
-        return reg  # a simpler model fits these views (magnified, nearly flat): it stands
-    xy_full = (xy_moving[reg.inliers] + 0.5) / S_moving[0, 0] - 0.5
-    xy_target = (features_fixed.xy[matches.idx_a][reg.inliers] + 0.5) / S_fixed[0, 0] - 0.5
-    fit, levels_done = fit_pair(
-        fixed,
-        moving,
-        xy_full,
-        xy_target,
-        reg.H_cur_to_prev,
-        min(scales),
-        config.registration,
-        model,
-        discs,
-    )
-    return dataclasses.replace(
-        reg,
-        H_cur_to_prev=fit.H,
-        Q_cur_to_prev=fit.Q if fit.model == "quadratic" else None,
-        model=fit.model,
-        refined_levels=levels_done,
-        reproj_error_px=fit.error_px,
-    )

@@ -65,7 +65,7 @@ class Registration:
     model: str = "homography"  # the motion model of H_cur_to_prev
     coverage: float = float("nan")  # share of the current frame inside the inliers' hull
     corner_sd_px: float = float("nan")  # expected corner error of the chosen model (1 sigma)
-    # pairs (`pipeline.register_pair`): the quadratic transform (2x6, `apply_quadratic`) when
+    # pairs (`pairs.register_pair`): the quadratic transform (2x6, `apply_quadratic`) when
     # the model is "quadratic", each image's working scale, the refinement's levels, and which
     # image was inverted so that both show dark vessels (`[preprocess] vessel_polarity`)
     Q_cur_to_prev: np.ndarray | None = None

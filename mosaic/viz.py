@@ -274,29 +274,24 @@ def pair_matches_picture(
     inverted: tuple[bool, bool] = (False, False),
 ) -> np.ndarray:
     """`mosaic register --matches`: the pair's keypoints and matches as `register_pair` finds
-    them (each image at its working size, mapped to its full-resolution pixels), an inlier
-    being a match that the final transform (Q if given, else H; none when failed) carries to
-    within RANSAC's threshold at full resolution; drawn by `draw_pair_matches`. `inverted`:
-    (fixed, moving) registered inverted (`Registration.inverted`, reversed)."""
+    them (`pairs.match_pair`: each image at its working size, mapped to its full-resolution
+    pixels), an inlier being a match that the final transform (Q if given, else H; none when
+    failed) carries to within RANSAC's threshold at full resolution; drawn by
+    `draw_pair_matches`. `inverted`: (fixed, moving) registered inverted
+    (`Registration.inverted`, reversed)."""
     from mosaic.features import to_frame_pixels
-    from mosaic.matching import match_descriptors
-    from mosaic.preprocess import inverted_as, pair_working_scales, prepare, resize_by
+    from mosaic.pairs import match_pair
+    from mosaic.preprocess import inverted_as
     from mosaic.registration import apply_homography, apply_quadratic
 
-    pre = config.preprocess
     shown = fixed, moving
-    fixed, moving = inverted_as(fixed, moving, inverted)
+    paired = match_pair(*inverted_as(fixed, moving, inverted), config, extractor)
     xys, scales = [], []
-    descriptors = []
-    pair_scales = pair_working_scales(fixed, moving, pre.max_side_px, pre.fov_diameter_px)
-    for image, working in zip((fixed, moving), pair_scales, strict=True):
-        work, S = resize_by(image, working)
-        features = extractor(prepare(work, pre))
+    for features, S in ((paired.fixed, paired.S_fixed), (paired.moving, paired.S_moving)):
         scale = 1.0 if S is None else float(S[0, 0])
         xys.append(to_frame_pixels(features.xy, np.float32(1.0 / scale)))
         scales.append(scale)
-        descriptors.append(features.descriptors)
-    matches = match_descriptors(descriptors[0], descriptors[1], config.matching)
+    matches = paired.matches
     a, b = xys[0][matches.idx_a], xys[1][matches.idx_b]
     inliers = np.zeros(len(matches), bool)
     if H_moving_to_fixed is not None and len(matches):

@@ -13,7 +13,7 @@ from mosaic.features import (
     _textured,
     resolve_precision,
 )
-from mosaic.pipeline import register_pair
+from mosaic.pairs import register_pair
 from mosaic.preprocess import prepare
 from tests.helpers import corner_error, crop_pair, similarity
 

@@ -684,7 +684,7 @@ def test_auto_refines_photographs_of_a_whole_retina_whatever_the_coarse_model(
     exact truth), while views without a retina's rim (magnified) keep the simpler model."""
     import dataclasses
 
-    from mosaic import pipeline
+    from mosaic import pairs
     from mosaic.curved import curved_pair
     from mosaic.features import FeatureExtractor
     from mosaic.registration import apply_quadratic
@@ -693,14 +693,14 @@ def test_auto_refines_photographs_of_a_whole_retina_whatever_the_coarse_model(
     fixed, moving = pair.fixed, pair.moving
     if not whole_retina:
         fixed, moving = fixed[212:812, 212:812], moving[212:812, 212:812]
-    estimate = pipeline.estimate_motion
+    estimate = pairs.estimate_motion
 
     def as_similarity(*args, **kwargs):
         return dataclasses.replace(estimate(*args, **kwargs), model="similarity")
 
-    monkeypatch.setattr(pipeline, "estimate_motion", as_similarity)
+    monkeypatch.setattr(pairs, "estimate_motion", as_similarity)
     config = _config()
-    reg = pipeline.register_pair(fixed, moving, config, FeatureExtractor(config.features), "auto")
+    reg = pairs.register_pair(fixed, moving, config, FeatureExtractor(config.features), "auto")
     assert reg.ok
     if not whole_retina:
         assert reg.model == "similarity" and not reg.refined_levels
@@ -720,7 +720,7 @@ def test_an_angiogram_is_registered_to_a_colour_photograph_once_inverted(
     exact truth once that photograph is inverted; without the inversion its descriptors do not
     match the colour photograph's and the pair fails or is placed wildly. Two photographs of
     one kind are registered once, as they are."""
-    from mosaic import pipeline
+    from mosaic import pairs
     from mosaic.curved import curved_pair
     from mosaic.features import FeatureExtractor
     from mosaic.preprocess import invert_in_view
@@ -732,7 +732,7 @@ def test_an_angiogram_is_registered_to_a_colour_photograph_once_inverted(
         Config(), features={"detector": "sift"}, preprocess={"vessel_polarity": vessel_polarity}
     )
     extractor = FeatureExtractor(config.features)
-    reg = pipeline.register_pair(pair.fixed, angiogram, config, extractor, "auto")
+    reg = pairs.register_pair(pair.fixed, angiogram, config, extractor, "auto")
     cp = pair.control_points
     if not vessel_polarity:
         if reg.ok:
@@ -742,9 +742,9 @@ def test_an_angiogram_is_registered_to_a_colour_photograph_once_inverted(
         return
     assert reg.ok and reg.inverted == (True, False)  # (moving, fixed)
     calls = []
-    register_once = pipeline._register_pair
-    monkeypatch.setattr(pipeline, "_register_pair", lambda *a: calls.append(a) or register_once(*a))
-    same_kind = pipeline.register_pair(pair.fixed, pair.moving, config, extractor, "auto")
+    register_once = pairs._register_pair
+    monkeypatch.setattr(pairs, "_register_pair", lambda *a: calls.append(a) or register_once(*a))
+    same_kind = pairs.register_pair(pair.fixed, pair.moving, config, extractor, "auto")
     assert same_kind.ok and same_kind.inverted == (False, False) and len(calls) == 1
     mapped = (
         apply_quadratic(reg.Q_cur_to_prev, cp[:, 2:])

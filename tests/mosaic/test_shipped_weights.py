@@ -21,7 +21,7 @@ from mosaic.config import Config
 from mosaic.datasets import load_synthetic
 from mosaic.evaluate import run_pair_evaluation
 from mosaic.features import FeatureExtractor
-from mosaic.pipeline import register_pair
+from mosaic.pairs import register_pair
 from tests.conftest import SHARED_DATA
 from tests.helpers import corner_error, crop_pair, similarity
 
