@@ -294,9 +294,9 @@ def evaluate(
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     from mosaic.config import load_config, with_overrides
-    from mosaic.datasets import open_dataset
     from mosaic.errors import MosaicError
-    from mosaic.evaluate import (
+    from mosaic.eval.datasets import open_dataset
+    from mosaic.eval.evaluate import (
         format_pair_tables,
         parse_detectors,
         run_pair_evaluation,
@@ -335,7 +335,7 @@ def evaluate(
 def _score_answers(dataset: Path, fmt: str | None, answers: Path, out: Path) -> None:
     """`evaluate --answers`: the FIRE protocol of `mosaic register --pairs` answers."""
     from mosaic.errors import MosaicError
-    from mosaic.evaluate import (
+    from mosaic.eval.evaluate import (
         format_answer_table,
         read_answers,
         score_answers,

@@ -48,7 +48,7 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
     from mosaic.refine import warp_check
     from mosaic.registration import MODELS
     from mosaic.runner import Outputs, run_video
-    from mosaic.synth import SynthParams, pick_source, write_synthetic_video
+    from mosaic.synthetic.synth import SynthParams, pick_source, write_synthetic_video
     from mosaic.viz import VIEWER_MODES, RerunViewer, Viewer, make_viewer
 except KeyboardInterrupt:
     sys.stderr.write("interrupted\n")
@@ -612,7 +612,7 @@ def synth(
         )
         edit = None
         if followup_of is not None:  # the baseline's own photograph, changed
-            from mosaic.followup import followup_hook, load_baseline_gt
+            from mosaic.synthetic.followup import followup_hook, load_baseline_gt
 
             baseline = load_baseline_gt(followup_of)
             image = image or Path(baseline["source"])
@@ -631,8 +631,9 @@ def _curved_pairs(
     realistic: bool,
     turn_deg: float,
 ) -> None:
-    """`synth --curved-pairs`: the pairs in FIRE's layout (`mosaic.curved.write_fire_folder`)."""
-    from mosaic.curved import write_fire_folder
+    """`synth --curved-pairs`: the pairs in FIRE's layout
+    (`mosaic.synthetic.curved.write_fire_folder`)."""
+    from mosaic.synthetic.curved import write_fire_folder
 
     width, height = _parse_size(size or "2912x2912")
     if width != height:
@@ -958,7 +959,7 @@ def evaluate(
 ) -> None:
     """Compare detectors and strategies on videos: frames until failure, accuracy vs
     VIDEO.gt.json, drift, speed; paired differences with bootstrap intervals."""
-    from mosaic.evaluate import (
+    from mosaic.eval.evaluate import (
         format_video_tables,
         load_video_results,
         parse_detectors,
@@ -1029,7 +1030,7 @@ def bench(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
 ) -> None:
     """Time the whole pipeline per detector on a synthetic video (ms per stage, frames/s)."""
-    from mosaic.bench import (
+    from mosaic.eval.bench import (
         environment,
         format_build_table,
         format_table,

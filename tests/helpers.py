@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mosaic.synth import (
+from mosaic.synthetic.synth import (
     SynthParams,
     corner_error,
     gt_path_for,

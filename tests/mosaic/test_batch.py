@@ -38,7 +38,7 @@ from mosaic.batch import (
 )
 from mosaic.config import load_config
 from mosaic.errors import InputError
-from mosaic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 
 runner = CliRunner()
@@ -565,7 +565,7 @@ def test_batch_compares_a_patients_visits_onto_the_first(tmp_path):
     from types import SimpleNamespace
 
     from mosaic.compare import covered_area
-    from mosaic.followup import followup_hook, load_baseline_gt, source_to_mosaic
+    from mosaic.synthetic.followup import followup_hook, load_baseline_gt, source_to_mosaic
     from tests.mosaic.test_compare import MAX_ERROR_PX, alignment_error
 
     base, follow = tmp_path / "base.mp4", tmp_path / "follow.mp4"

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 import mosaic.cli
 from mosaic import preprocess
 from mosaic.cli import app
-from mosaic.synth import load_ground_truth
+from mosaic.synthetic.synth import load_ground_truth
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import corner_error, crop_pair, leaving_clip, similarity
 
@@ -243,7 +243,7 @@ def test_register_prints_the_homography(fundus, tmp_path):
 
 
 def test_synth_curved_pairs_writes_a_fire_folder_with_exact_control_points(tmp_path):
-    from mosaic.datasets import load_fire
+    from mosaic.eval.datasets import load_fire
 
     out = tmp_path / "curved"
     args = ["synth", "--curved-pairs", "2", "--size", "320x320", "--seed", "4", "-o", str(out)]
@@ -285,8 +285,8 @@ def test_register_describes_photographs_at_the_photo_descriptor_size(fundus, tmp
 
 @pytest.mark.both_precisions
 def test_register_curved_pair_prints_the_quadratic_and_warps(tmp_path):
-    from mosaic.curved import curved_pair
     from mosaic.registration import apply_quadratic
+    from mosaic.synthetic.curved import curved_pair
 
     pair = curved_pair(cv2.imread(str(SAMPLE_IMAGE)), seed=3, size=1024)
     fixed, moving, warp = tmp_path / "f.png", tmp_path / "m.png", tmp_path / "warp.png"

@@ -1,6 +1,6 @@
 """`mosaic compare` against synthetic truth: follow-up visits of the shipped photograph with
-planted changes (`mosaic.followup`), as photographs with a known eye turn and as videos built
-into mosaics; unrelated eyes and visits without overlap refused."""
+planted changes (`mosaic.synthetic.followup`), as photographs with a known eye turn and as
+videos built into mosaics; unrelated eyes and visits without overlap refused."""
 
 from __future__ import annotations
 
@@ -25,9 +25,9 @@ from mosaic.compare import (
 )
 from mosaic.config import Config
 from mosaic.features import FeatureExtractor
-from mosaic.followup import MIN_CHANGE_PX, Change, plant_changes, source_to_mosaic
 from mosaic.refine import fixed_to_moving_map
 from mosaic.registration import apply_homography
+from mosaic.synthetic.followup import MIN_CHANGE_PX, Change, plant_changes, source_to_mosaic
 from tests.conftest import SAMPLE_IMAGE, SHARED_DATA
 
 runner = CliRunner()

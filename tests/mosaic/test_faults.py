@@ -37,7 +37,7 @@ from mosaic.config import Config, config_from_dict, value_range, with_overrides
 from mosaic.errors import ConfigError
 from mosaic.io import open_frames
 from mosaic.runner import Outputs, run_video
-from mosaic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 from tests.glampoints.conftest import vessel_image
 from tests.helpers import locked
@@ -693,7 +693,7 @@ def test_bench_errors_on_a_named_detector_and_skips_a_default_one(tmp_path, bad_
     args = ["bench", "--detector", "glampoints", "-c", str(bad_weights), "--frames", "10",
             "--size", "120x100", "--no-rerun"]  # fmt: skip
     assert "weights file not found" in _one_error_line(runner.invoke(app, args))
-    from mosaic.bench import format_table, run_bench
+    from mosaic.eval.bench import format_table, run_bench
 
     config = with_overrides(Config(), features={"weights": str(tmp_path / "missing.pt")})
     rows = run_bench(["glampoints", "sift"], (120, 100), 10, config, explicit=False)

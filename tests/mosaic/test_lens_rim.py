@@ -14,7 +14,7 @@ import pytest
 from mosaic.config import Config, PreprocessConfig, with_overrides
 from mosaic.pipeline import MosaicBuilder
 from mosaic.preprocess import LensRimMask, find_lens_rim, prepare
-from mosaic.synth import SynthParams, lens_rim_truth, render_frames
+from mosaic.synthetic.synth import SynthParams, lens_rim_truth, render_frames
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import errors_to_first
 

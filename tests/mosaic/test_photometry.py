@@ -333,7 +333,7 @@ def test_fill_invalid_extends_the_valid_pixels_smoothly() -> None:
 
 def test_striped_side_bands_stay_out_of_the_built_mosaic(tmp_path) -> None:
     from mosaic.config import Config, with_overrides
-    from mosaic.synth import SynthParams, write_synthetic_video
+    from mosaic.synthetic.synth import SynthParams, write_synthetic_video
     from tests.conftest import SAMPLE_IMAGE
     from tests.helpers import build_from_folder
 

@@ -15,7 +15,7 @@ from mosaic.config import Config, with_overrides
 from mosaic.io import Frame, Lookahead, open_frames
 from mosaic.pipeline import MosaicBuilder, MosaicResult
 from mosaic.scheduling import OverlapTrial, Turns
-from mosaic.synth import SynthParams, load_ground_truth, write_synthetic_video
+from mosaic.synthetic.synth import SynthParams, load_ground_truth, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import (
     build_from_folder,
@@ -685,9 +685,9 @@ def test_auto_refines_photographs_of_a_whole_retina_whatever_the_coarse_model(
     import dataclasses
 
     from mosaic import pairs
-    from mosaic.curved import curved_pair
     from mosaic.features import FeatureExtractor
     from mosaic.registration import apply_quadratic
+    from mosaic.synthetic.curved import curved_pair
 
     pair = curved_pair(cv2.imread(str(SAMPLE_IMAGE)), seed=3, size=1024)
     fixed, moving = pair.fixed, pair.moving
@@ -721,10 +721,10 @@ def test_an_angiogram_is_registered_to_a_colour_photograph_once_inverted(
     match the colour photograph's and the pair fails or is placed wildly. Two photographs of
     one kind are registered once, as they are."""
     from mosaic import pairs
-    from mosaic.curved import curved_pair
     from mosaic.features import FeatureExtractor
     from mosaic.preprocess import invert_in_view
     from mosaic.registration import apply_homography, apply_quadratic
+    from mosaic.synthetic.curved import curved_pair
 
     pair = curved_pair(cv2.imread(str(SAMPLE_IMAGE)), seed=3, size=1024)
     angiogram = invert_in_view(pair.moving)

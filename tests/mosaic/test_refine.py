@@ -4,9 +4,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic.curved import curved_pair
 from mosaic.refine import level_scales, refine_pair, relocalise
 from mosaic.registration import apply_homography, apply_quadratic, robust_fit
+from mosaic.synthetic.curved import curved_pair
 
 
 @pytest.fixture(scope="module")

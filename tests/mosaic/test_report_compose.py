@@ -13,7 +13,7 @@ import pytest
 from mosaic.compose import _FLAT_PLACES
 from mosaic.config import Config, with_overrides
 from mosaic.photometry import SideBandDetector
-from mosaic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import build_from_folder
 

@@ -16,7 +16,7 @@ from mosaic.errors import MosaicError
 from mosaic.io import open_frames
 from mosaic.pipeline import MosaicBuilder
 from mosaic.runner import Outputs, is_frame_folder, run_video, segment_path, thumbnail
-from mosaic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 
 SIFT = with_overrides(Config(), features={"detector": "sift"})

@@ -18,8 +18,8 @@ import pytest
 
 from glampoints.detector import DEFAULT_WEIGHTS
 from mosaic.config import Config
-from mosaic.datasets import load_synthetic
-from mosaic.evaluate import run_pair_evaluation
+from mosaic.eval.datasets import load_synthetic
+from mosaic.eval.evaluate import run_pair_evaluation
 from mosaic.features import FeatureExtractor
 from mosaic.pairs import register_pair
 from tests.conftest import SHARED_DATA

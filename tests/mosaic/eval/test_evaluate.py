@@ -18,10 +18,9 @@ from glampoints.cli import app as glampoints_app
 from glampoints.metrics import point_errors
 from mosaic.cli import app as mosaic_app
 from mosaic.config import Config, with_overrides
-from mosaic.curved import write_fire_folder
-from mosaic.datasets import Pair
 from mosaic.errors import ConfigError, InputError
-from mosaic.evaluate import (
+from mosaic.eval.datasets import Pair
+from mosaic.eval.evaluate import (
     FIRE_VARIANTS,
     VideoResult,
     _frame_references,
@@ -48,7 +47,8 @@ from mosaic.evaluate import (
 )
 from mosaic.features import FeatureExtractor
 from mosaic.io import sample_image_path
-from mosaic.synth import (
+from mosaic.synthetic.curved import write_fire_folder
+from mosaic.synthetic.synth import (
     SynthParams,
     gt_path_for,
     load_ground_truth,
@@ -56,7 +56,7 @@ from mosaic.synth import (
     write_synthetic_video,
 )
 from tests.helpers import leaving_clip
-from tests.mosaic.test_datasets import make_fire_fixture
+from tests.mosaic.eval.test_datasets import make_fire_fixture
 
 runner = CliRunner()
 
@@ -673,7 +673,7 @@ def test_a_comparison_across_precisions_is_said(tmp_path, caplog):
     write_video_outputs(before, summarize_videos(before), tmp_path / "before")
     previous = load_video_results(tmp_path / "before")
     assert previous[0].precision == "float32"
-    with caplog.at_level(logging.WARNING, logger="mosaic.evaluate"):
+    with caplog.at_level(logging.WARNING, logger="mosaic.eval.evaluate"):
         warn_of_precisions([dataclasses.replace(run, precision="float32")], previous)
         assert not caplog.records
         warn_of_precisions([dataclasses.replace(run, precision="bfloat16")], previous)

@@ -2,9 +2,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic.curved import APERTURE, curved_pair, write_fire_folder
-from mosaic.datasets import load_fire
+from mosaic.eval.datasets import load_fire
 from mosaic.preprocess import retina_disc
+from mosaic.synthetic.curved import APERTURE, curved_pair, write_fire_folder
 
 
 @pytest.fixture(scope="module")

@@ -811,8 +811,8 @@ def write_synthetic_video(
     is measured (`psnr_db`: mean, min over the first 250 frames); a path without suffix gives a
     folder of PNG frames `frame_0000.png`, ... (lossless; a new folder or one without images).
     Every file is written atomically. Returns the ground-truth path. `edit_source` changes the
-    source before rendering (a follow-up visit's planted changes, `mosaic.followup`) and gives
-    entries added to the ground truth.
+    source before rendering (a follow-up visit's planted changes, `mosaic.synthetic.followup`)
+    and gives entries added to the ground truth.
     """
     source_path = pick_source(source_path, params.seed)
     source = read_image(source_path)

@@ -15,9 +15,9 @@ when there is one: each frame's placement against the first frame (corner error,
 against the frame it was registered to (step error); the report's motion models are counted per
 video, and its per-frame quality score is compared with the corner error (rank correlation, bad
 frames flagged, good frames flagged). Each run's full report is kept under `reports/`. With a
-readable source photograph, the mosaic itself is scored against it (`mosaic.fidelity`, issue 16:
-fidelity and good area), next to the oracle (the plain mean of the frames placed by the true
-transforms, computed once per video).
+readable source photograph, the mosaic itself is scored against it (`mosaic.eval.fidelity`,
+issue 16: fidelity and good area), next to the oracle (the plain mean of the frames placed by
+the true transforms, computed once per video).
 
 Outputs (`write_pair_outputs`, `write_video_outputs`): CSV and JSON tables, per-pair/per-video
 rows and PNG plots. Pure metric definitions live in `glampoints.metrics`, not here.
@@ -45,7 +45,8 @@ from tqdm import tqdm
 from glampoints import metrics as gm
 from glampoints.detector import WeightsError
 from mosaic.config import Config, RegistrationConfig, for_photographs, with_overrides
-from mosaic.datasets import (
+from mosaic.errors import ConfigError, InputError
+from mosaic.eval.datasets import (
     FIRE_CATEGORIES,
     Pair,
     PairDataset,
@@ -53,15 +54,14 @@ from mosaic.datasets import (
     fire_truth,
     read_matrix,
 )
-from mosaic.errors import ConfigError, InputError
-from mosaic.features import DETECTORS, FeatureExtractor
-from mosaic.fidelity import (
+from mosaic.eval.fidelity import (
     FidelityScores,
     SourceTruth,
     mosaic_fidelity,
     oracle_fidelity,
     prepare_source,
 )
+from mosaic.features import DETECTORS, FeatureExtractor
 from mosaic.io import UNDECODABLE, atomic_path, make_folder, read_image, write_json, write_text
 from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import MosaicResult
@@ -73,7 +73,12 @@ from mosaic.registration import apply_homography, apply_quadratic, estimate_homo
 from mosaic.report import FAILED, REGISTERED, SKIPPED
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 from mosaic.runner import reread_frames as _reread
-from mosaic.synth import corner_error, gt_path_for, load_ground_truth, relative_homographies
+from mosaic.synthetic.synth import (
+    corner_error,
+    gt_path_for,
+    load_ground_truth,
+    relative_homographies,
+)
 
 log = logging.getLogger(__name__)
 

@@ -6,15 +6,15 @@ import json
 
 from typer.testing import CliRunner
 
-from mosaic.bench import (
+from mosaic.cli import app
+from mosaic.config import Config, with_overrides
+from mosaic.eval.bench import (
     format_build_table,
     format_table,
     profile_pipeline,
     run_bench,
     run_build_bench,
 )
-from mosaic.cli import app
-from mosaic.config import Config, with_overrides
 
 
 def test_bench_runs_every_variant_on_the_same_video():
@@ -85,7 +85,7 @@ def test_profile_names_the_pipeline_stages():
 def test_bench_measures_glampoints_in_the_other_precision_where_the_cpu_has_bfloat16(
     monkeypatch,
 ):
-    import mosaic.bench as bench
+    import mosaic.eval.bench as bench
 
     monkeypatch.setattr(bench, "native_bfloat16", lambda: True)
     for default, other in (("auto", "float32"), ("float32", "bfloat16")):

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from glampoints.metrics import warp_points
-from mosaic.datasets import detect_format, open_dataset
 from mosaic.errors import InputError
+from mosaic.eval.datasets import detect_format, open_dataset
 from tests.helpers import crop_pair, similarity
 
 FIRE_SIZE = 320  # "full resolution" of the fixture (real FIRE: 2912)

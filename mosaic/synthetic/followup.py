@@ -185,7 +185,7 @@ def followup_hook(
     """The `edit_source` hook of `synth.write_synthetic_video` that renders a follow-up of the
     baseline whose ground truth is `baseline_gt`: changes planted where the baseline's frames
     and the follow-up's own frames (its trajectory, planned from the same source) both look."""
-    from mosaic.synth import plan_trajectory
+    from mosaic.synthetic.synth import plan_trajectory
 
     H_base = np.array([f["H_frame_to_source"] for f in baseline_gt["frames"]], float)
     base_size = tuple(baseline_gt["size"])
@@ -212,7 +212,7 @@ def load_baseline_gt(path: str | Path) -> dict[str, Any]:
     """The ground truth of a baseline video (its `.gt.json`, or the video it belongs to)."""
     import json
 
-    from mosaic.synth import gt_path_for
+    from mosaic.synthetic.synth import gt_path_for
 
     p = Path(path).expanduser()
     gt_path = p if p.suffix.lower() == ".json" else gt_path_for(p)

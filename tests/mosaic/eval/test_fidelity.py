@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic.fidelity import (
+from mosaic.eval.fidelity import (
     FidelityScores,
     fit_canvas_to_source,
     fit_homography,
@@ -23,7 +23,7 @@ from mosaic.fidelity import (
     transform,
 )
 from mosaic.preprocess import field_of_view_mask
-from mosaic.synth import SynthParams, corner_error, render_frames
+from mosaic.synthetic.synth import SynthParams, corner_error, render_frames
 
 CANVAS = (300, 240)  # (width, height)
 FRAME = (120, 90)

@@ -33,7 +33,7 @@ from mosaic.io import Frame, sample_image_path
 from mosaic.pipeline import FrameRecord
 from mosaic.report import STAGES
 from mosaic.runner import Outputs, run_video
-from mosaic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
 from mosaic.viz import Viewer
 
 log = logging.getLogger(__name__)

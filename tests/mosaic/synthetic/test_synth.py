@@ -11,7 +11,7 @@ import pytest
 
 from mosaic.errors import ConfigError, InputError, OutputError
 from mosaic.io import open_frames, sample_image_path
-from mosaic.synth import (
+from mosaic.synthetic.synth import (
     SynthParams,
     _bursts,
     _disc_kernel,
@@ -219,7 +219,7 @@ def test_corner_error_and_relative_homographies():
 
 
 def test_hard_video_revisits_and_blurs(fundus):
-    from mosaic.synth import plan_trajectory
+    from mosaic.synthetic.synth import plan_trajectory
 
     params = SynthParams.hard(n_frames=40, size=(200, 150), seed=4, max_step_px=25.0)
     H = plan_trajectory(fundus, params)
