@@ -25,8 +25,8 @@ import numpy as np
 
 from mosaic.compose import Canvas
 from mosaic.config import ComposeConfig, PreprocessConfig
+from mosaic.geometry import corner_error, relative_homographies
 from mosaic.preprocess import prepare, to_working_size
-from mosaic.synthetic.synth import corner_error, relative_homographies
 
 log = logging.getLogger(__name__)
 

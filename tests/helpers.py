@@ -9,9 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from mosaic.geometry import corner_error
 from mosaic.synthetic.synth import (
     SynthParams,
-    corner_error,
     gt_path_for,
     load_ground_truth,
     write_synthetic_video,

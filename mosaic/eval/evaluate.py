@@ -62,6 +62,7 @@ from mosaic.eval.fidelity import (
     prepare_source,
 )
 from mosaic.features import DETECTORS, FeatureExtractor
+from mosaic.geometry import corner_error, relative_homographies
 from mosaic.io import UNDECODABLE, atomic_path, make_folder, read_image, write_json, write_text
 from mosaic.matching import distance_matrix, match_descriptors
 from mosaic.pipeline import MosaicResult
@@ -73,12 +74,7 @@ from mosaic.registration import apply_homography, apply_quadratic, estimate_homo
 from mosaic.report import FAILED, REGISTERED, SKIPPED
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 from mosaic.runner import reread_frames as _reread
-from mosaic.synthetic.synth import (
-    corner_error,
-    gt_path_for,
-    load_ground_truth,
-    relative_homographies,
-)
+from mosaic.synthetic.synth import gt_path_for, load_ground_truth
 
 log = logging.getLogger(__name__)
 

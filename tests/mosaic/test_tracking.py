@@ -400,7 +400,7 @@ def test_tracked_inliers_register_blurred_realistic_pairs_more_precisely(fundus)
     blur) closer to the truth. No perspective here, so the error is the points' placement,
     not the similarity's bias: median corner error 1.50 -> 1.05 px over one clip's pairs 8
     frames apart (asserted < 0.8x); with the default perspective, four clips: 2.00 -> 1.18."""
-    from mosaic.synthetic.synth import corner_error, relative_homographies
+    from mosaic.geometry import corner_error, relative_homographies
     from mosaic.tracking import _register
 
     params = SynthParams.realistic(n_frames=40, seed=4, blur_prob=0.3, perspective=0.0)

@@ -46,13 +46,13 @@ from mosaic.eval.evaluate import (
     write_video_outputs,
 )
 from mosaic.features import FeatureExtractor
+from mosaic.geometry import relative_homographies
 from mosaic.io import sample_image_path
 from mosaic.synthetic.curved import write_fire_folder
 from mosaic.synthetic.synth import (
     SynthParams,
     gt_path_for,
     load_ground_truth,
-    relative_homographies,
     write_synthetic_video,
 )
 from tests.helpers import leaving_clip

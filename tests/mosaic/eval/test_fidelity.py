@@ -22,8 +22,9 @@ from mosaic.eval.fidelity import (
     prepare_source,
     transform,
 )
+from mosaic.geometry import corner_error
 from mosaic.preprocess import field_of_view_mask
-from mosaic.synthetic.synth import SynthParams, corner_error, render_frames
+from mosaic.synthetic.synth import SynthParams, render_frames
 
 CANVAS = (300, 240)  # (width, height)
 FRAME = (120, 90)

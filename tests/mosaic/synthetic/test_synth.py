@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from mosaic.errors import ConfigError, InputError, OutputError
+from mosaic.geometry import corner_error, relative_homographies
 from mosaic.io import open_frames, sample_image_path
 from mosaic.synthetic.synth import (
     SynthParams,
@@ -18,13 +19,11 @@ from mosaic.synthetic.synth import (
     _LensReflexes,
     _LensRim,
     _line_kernel,
-    corner_error,
     estimate_fov_disc,
     gt_path_for,
     load_ground_truth,
     pick_source,
     plan_trajectory,
-    relative_homographies,
     render_frames,
     write_synthetic_video,
 )
@@ -207,15 +206,6 @@ def test_errors(tmp_path):
         load_ground_truth(bad)
     with pytest.raises(InputError, match="not found"):
         load_ground_truth(tmp_path / "absent.gt.json")
-
-
-def test_corner_error_and_relative_homographies():
-    T = np.array([[1, 0, 3.0], [0, 1, 4.0], [0, 0, 1]])
-    assert corner_error(T, np.eye(3), (100, 50)) == pytest.approx(5.0)
-    G = [np.diag([2.0, 2.0, 1.0]), np.diag([2.0, 2.0, 1.0]) @ T]
-    rel = relative_homographies(G)
-    np.testing.assert_allclose(rel[0], np.eye(3), atol=1e-12)
-    np.testing.assert_allclose(rel[1], T, atol=1e-12)
 
 
 def test_hard_video_revisits_and_blurs(fundus):

@@ -1,0 +1,83 @@
+"""The packages keep their layers (issue 42), read from the source's import statements (ast),
+those inside functions included:
+
+- the runtime modules of `mosaic` (every module of `mosaic/` itself but the CLI, the edge that
+  offers every command) import neither `mosaic.eval` nor `mosaic.synthetic`.
+
+Each check is a pure function of the sources and is shown to catch a fake import.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+MOSAIC = REPO / "mosaic"
+# the edge that may import every layer: the command line offers evaluate, bench and synth
+EDGES = {"cli.py"}
+AROUND_RUNTIME = ("mosaic.eval", "mosaic.synthetic")
+
+
+def module_name(path: Path) -> str:
+    """`mosaic/eval/evaluate.py` -> `mosaic.eval.evaluate` (a package's `__init__` its own)."""
+    parts = path.relative_to(REPO).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imported_modules(source: str, module: str) -> set[str]:
+    """Every module a source imports, absolute (relative imports resolved against `module`,
+    `from a import b` counted as both `a` and `a.b`, since b may be a module)."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                package = module.split(".")[: len(module.split(".")) - node.level]
+                base = ".".join([*package, base] if base else package)
+            names.add(base)
+            names.update(f"{base}.{alias.name}" for alias in node.names)
+    return names
+
+
+def _within(name: str, packages: tuple[str, ...]) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in packages)
+
+
+def runtime_modules() -> list[Path]:
+    """The modules of `mosaic/` itself (not its subpackages), the CLI left out."""
+    return sorted(p for p in MOSAIC.glob("*.py") if p.name not in EDGES)
+
+
+def layer_breaches(sources: dict[str, str], forbidden: tuple[str, ...]) -> list[str]:
+    """`module -> imported` for each import of a `forbidden` package (or its modules) that one
+    of `sources` (module name -> source text) makes (`from a import b` named once, as `a`
+    when a is forbidden)."""
+    breaches = []
+    for module, source in sources.items():
+        names = imported_modules(source, module)
+        for name in names:
+            if _within(name, forbidden) and name.rpartition(".")[0] not in names:
+                breaches.append(f"{module} -> {name}")
+    return sorted(breaches)
+
+
+def test_imported_modules_resolves_every_form():
+    source = (
+        "import mosaic.eval.bench as b\n"
+        "from mosaic import synthetic\n"
+        "def f():\n    from .eval.evaluate import x\n"
+    )
+    names = imported_modules(source, "mosaic.quality")
+    assert {"mosaic.eval.bench", "mosaic.synthetic", "mosaic.eval.evaluate"} <= names
+
+
+def test_runtime_stages_import_neither_eval_nor_synthetic():
+    sources = {module_name(p): p.read_text(encoding="utf-8") for p in runtime_modules()}
+    assert {"mosaic.quality", "mosaic.pipeline", "mosaic.runner"} <= set(sources)
+    assert layer_breaches(sources, AROUND_RUNTIME) == []
+    # the check catches a stage that imports the synthetic data, even inside a function
+    sources["mosaic.quality"] += "\ndef f():\n    from mosaic.synthetic.synth import x\n"
+    assert layer_breaches(sources, AROUND_RUNTIME) == ["mosaic.quality -> mosaic.synthetic.synth"]
