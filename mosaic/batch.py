@@ -389,7 +389,6 @@ def process_video(
 ) -> dict[str, Any]:
     """Build one video of the batch into OUT_DIR/<id>/ and return its summary row; every error
     (but the interrupt, which is its own status) becomes a failed row."""
-    from glampoints.detector import WeightsError
     from mosaic.viz import make_viewer
 
     paths = _folder_paths(out_dir, task.id)
@@ -422,7 +421,7 @@ def process_video(
                     Outputs(paths["mosaic"], paths["report"], paths["thumbnail"]),
                     viewer=viewer,
                 )
-            except (MosaicError, WeightsError) as exc:
+            except MosaicError as exc:
                 log.error("%s", exc)
                 report = _read_json(paths["report"]) if paths["report"].is_file() else None
                 elapsed = time.perf_counter() - started

@@ -30,7 +30,6 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
     import typer
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    from glampoints.detector import WeightsError
     from mosaic.config import Config, for_photographs, load_config, with_overrides
     from mosaic.errors import InputError, MosaicError
     from mosaic.features import DETECTORS, FeatureExtractor
@@ -101,7 +100,7 @@ def _user_errors() -> Iterator[None]:
     """Turn errors a user can act on into one line on stderr and exit code 2."""
     try:
         yield
-    except (MosaicError, WeightsError) as exc:
+    except MosaicError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(EXIT_USER_ERROR) from None
 

@@ -17,5 +17,10 @@ class OutputError(MosaicError):
     """An output cannot be written (missing or read-only folder)."""
 
 
+class DetectorWeightsError(MosaicError):
+    """The detector's weights cannot be loaded (missing file, not a weights file, another
+    network): glampoints' `WeightsError` as the features adapter raises it."""
+
+
 class CanvasLimitError(MosaicError):
     """Placing a frame would grow the mosaic canvas beyond its configured cap."""

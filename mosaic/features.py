@@ -1,8 +1,15 @@
-"""Keypoint detectors (a registry chosen by name) and descriptors.
+"""Keypoint detectors (a registry chosen by name) and descriptors; the adapter between
+`mosaic` and `glampoints`.
 
 Every detector returns `glampoints.Keypoints` (x, y float32 + scores) restricted to the frame's
 field-of-view mask. The descriptor is upright root-SIFT (orientation fixed to 0, the paper's
 choice for fundus images) unless `descriptor = "native"` asks for the detector's own.
+
+This module is the one place the application meets the model package (besides the
+`glampoints` command line): glampoints' `WeightsError` becomes `DetectorWeightsError`, and the
+rest of `mosaic` takes from here what it needs of glampoints: the paper's metrics and failure
+rules (`paper_metrics`, `failure_reason`), its synthetic pairs (`HomographyRanges`,
+`fixed_pairs`) and the CPU's bfloat16 support (`cpu_has_native_bfloat16`).
 """
 
 from __future__ import annotations
@@ -15,10 +22,15 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from glampoints import metrics as paper_metrics  # noqa: F401 (re-exported: see above)
 from glampoints.descriptors import upright_rootsift
-from glampoints.detector import Keypoints
+from glampoints.detector import Keypoints, WeightsError
+from glampoints.detector import cpu_has_native_bfloat16 as cpu_has_native_bfloat16
+from glampoints.metrics import failure_reason as failure_reason
+from glampoints.synthetic import HomographyRanges as HomographyRanges
+from glampoints.synthetic import fixed_pairs as fixed_pairs
 from mosaic.config import FeaturesConfig
-from mosaic.errors import ConfigError
+from mosaic.errors import ConfigError, DetectorWeightsError
 from mosaic.preprocess import Prepared, erode_by_disc
 
 log = logging.getLogger(__name__)
@@ -179,20 +191,23 @@ class GlamPointsDetector:
     def __init__(self, config: FeaturesConfig):
         import torch
 
-        from glampoints.detector import GlamPoints, cpu_has_native_bfloat16
+        from glampoints.detector import GlamPoints
 
         if config.device == "cuda" and not torch.cuda.is_available():
             raise ConfigError(
                 '[features] device = "cuda" but this torch build sees no CUDA GPU; use "cpu"'
             )
-        self._model = GlamPoints.from_pretrained(
-            config.weights or None,
-            nms_window_px=config.nms_window_px,
-            score_threshold=config.score_threshold,
-            max_keypoints=config.max_keypoints,
-            device=config.device,
-            precision=resolve_precision(config, cpu_has_native_bfloat16()),
-        )
+        try:
+            self._model = GlamPoints.from_pretrained(
+                config.weights or None,
+                nms_window_px=config.nms_window_px,
+                score_threshold=config.score_threshold,
+                max_keypoints=config.max_keypoints,
+                device=config.device,
+                precision=resolve_precision(config, cpu_has_native_bfloat16()),
+            )
+        except WeightsError as exc:  # the app's own error, so callers catch MosaicError only
+            raise DetectorWeightsError(str(exc)) from exc
         self._extra_scale = config.extra_scale
         self._extra_size = (
             config.descriptor_size_px / config.extra_scale if config.extra_scale else 0

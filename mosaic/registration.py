@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from glampoints.metrics import failure_reason
 from mosaic.config import RegistrationConfig
+from mosaic.features import failure_reason
 
 METHODS = {
     "ransac": cv2.RANSAC,

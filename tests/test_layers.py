@@ -2,7 +2,9 @@
 those inside functions included:
 
 - the runtime modules of `mosaic` (every module of `mosaic/` itself but the CLI, the edge that
-  offers every command) import neither `mosaic.eval` nor `mosaic.synthetic`.
+  offers every command) import neither `mosaic.eval` nor `mosaic.synthetic`;
+- at most two `mosaic` modules import `glampoints`: the detector adapter (`mosaic.features`)
+  and the command line.
 
 Each check is a pure function of the sources and is shown to catch a fake import.
 """
@@ -17,6 +19,8 @@ MOSAIC = REPO / "mosaic"
 # the edge that may import every layer: the command line offers evaluate, bench and synth
 EDGES = {"cli.py"}
 AROUND_RUNTIME = ("mosaic.eval", "mosaic.synthetic")
+# the only mosaic modules that may import glampoints: the adapter, and the command line
+GLAMPOINTS_DOORS = {"mosaic.features", "mosaic.cli"}
 
 
 def module_name(path: Path) -> str:
@@ -51,6 +55,14 @@ def runtime_modules() -> list[Path]:
     return sorted(p for p in MOSAIC.glob("*.py") if p.name not in EDGES)
 
 
+def package_sources(package: str) -> dict[str, str]:
+    """module name -> source text of every module of `package` (subpackages included)."""
+    return {
+        module_name(p): p.read_text(encoding="utf-8")
+        for p in sorted((REPO / package).rglob("*.py"))
+    }
+
+
 def layer_breaches(sources: dict[str, str], forbidden: tuple[str, ...]) -> list[str]:
     """`module -> imported` for each import of a `forbidden` package (or its modules) that one
     of `sources` (module name -> source text) makes (`from a import b` named once, as `a`
@@ -81,3 +93,23 @@ def test_runtime_stages_import_neither_eval_nor_synthetic():
     # the check catches a stage that imports the synthetic data, even inside a function
     sources["mosaic.quality"] += "\ndef f():\n    from mosaic.synthetic.synth import x\n"
     assert layer_breaches(sources, AROUND_RUNTIME) == ["mosaic.quality -> mosaic.synthetic.synth"]
+
+
+def importers_of(sources: dict[str, str], package: str) -> set[str]:
+    """The modules of `sources` that import `package` (or one of its modules)."""
+    return {
+        module
+        for module, source in sources.items()
+        if any(_within(name, (package,)) for name in imported_modules(source, module))
+    }
+
+
+def test_at_most_two_mosaic_modules_import_glampoints():
+    sources = package_sources("mosaic")
+    assert {"mosaic.features", "mosaic.eval.evaluate", "mosaic.synthetic.synth"} <= set(sources)
+    assert len(GLAMPOINTS_DOORS) <= 2
+    assert "mosaic.features" in importers_of(sources, "glampoints")
+    assert importers_of(sources, "glampoints") <= GLAMPOINTS_DOORS
+    # the check catches a module that imports glampoints to catch its error
+    sources["mosaic.batch"] += "\ndef f():\n    from glampoints.detector import WeightsError\n"
+    assert importers_of(sources, "glampoints") - GLAMPOINTS_DOORS == {"mosaic.batch"}

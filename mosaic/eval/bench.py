@@ -25,10 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from glampoints.detector import WeightsError
 from mosaic.config import Config, with_overrides
-from mosaic.errors import ConfigError
-from mosaic.features import FeatureExtractor, resolve_precision
+from mosaic.errors import ConfigError, DetectorWeightsError
+from mosaic.features import FeatureExtractor, cpu_has_native_bfloat16, resolve_precision
 from mosaic.io import Frame, sample_image_path
 from mosaic.pipeline import FrameRecord
 from mosaic.report import STAGES
@@ -77,8 +76,6 @@ def cuda_available() -> bool:
 
 def native_bfloat16() -> bool:
     """Whether this CPU has bfloat16 in hardware (the GLAMpoints precision variant is measured)."""
-    from glampoints.detector import cpu_has_native_bfloat16
-
     return cpu_has_native_bfloat16()
 
 
@@ -266,7 +263,7 @@ def run_bench(
     config does not fix), and with the rerun recording.
 
     A detector that cannot be built (GLAMpoints without its weights, a descriptor it lacks)
-    raises `WeightsError` / `ConfigError` when `explicit` (the user named it), else it is
+    raises `DetectorWeightsError` / `ConfigError` when `explicit` (the user named it), else it is
     skipped with a warning. Errors while running are never swallowed."""
     config = config or Config()
     rows: list[BenchRow] = []
@@ -277,7 +274,7 @@ def run_bench(
             cfg = with_overrides(config, features={"detector": name})
             try:
                 extractor = FeatureExtractor(cfg.features)
-            except (WeightsError, ConfigError) as exc:
+            except (DetectorWeightsError, ConfigError) as exc:
                 if explicit:
                     raise
                 log.warning("detector %s skipped: %s", name, exc)

@@ -24,8 +24,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from glampoints.synthetic import HomographyRanges, fixed_pairs
 from mosaic.errors import InputError
+from mosaic.features import HomographyRanges, fixed_pairs
 from mosaic.io import natural_key, read_image
 
 log = logging.getLogger(__name__)

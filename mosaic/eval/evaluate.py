@@ -42,10 +42,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from glampoints import metrics as gm
-from glampoints.detector import WeightsError
 from mosaic.config import Config, RegistrationConfig, for_photographs, with_overrides
-from mosaic.errors import ConfigError, InputError
+from mosaic.errors import ConfigError, DetectorWeightsError, InputError
 from mosaic.eval.datasets import (
     FIRE_CATEGORIES,
     Pair,
@@ -62,6 +60,7 @@ from mosaic.eval.fidelity import (
     prepare_source,
 )
 from mosaic.features import DETECTORS, FeatureExtractor
+from mosaic.features import paper_metrics as gm
 from mosaic.geometry import corner_error, relative_homographies
 from mosaic.io import UNDECODABLE, atomic_path, make_folder, read_image, write_json, write_text
 from mosaic.matching import distance_matrix, match_descriptors
@@ -123,7 +122,7 @@ def make_extractors(
         cfg = with_overrides(config, features={"detector": name})
         try:
             built[name] = (cfg, FeatureExtractor(cfg.features))
-        except WeightsError as exc:
+        except DetectorWeightsError as exc:
             log.warning("skipping detector %s: %s", name, exc)
         except ConfigError as exc:
             if explicit:

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from mosaic.config import Config, FeaturesConfig, with_overrides
-from mosaic.errors import ConfigError
+from mosaic.errors import ConfigError, DetectorWeightsError, MosaicError
 from mosaic.features import (
     CONTRAST_WINDOW_PX,
     DETECTORS,
@@ -124,6 +124,16 @@ def test_glampoints_on_a_missing_gpu_is_a_clear_config_error():
         pytest.skip("this machine has a CUDA GPU")
     with pytest.raises(ConfigError, match='device = "cuda"'):
         FeatureExtractor(FeaturesConfig(detector="glampoints", device="cuda"))
+
+
+def test_glampoints_weights_that_cannot_load_are_the_apps_own_error(tmp_path):
+    """The adapter turns glampoints' WeightsError into DetectorWeightsError (a MosaicError,
+    what the CLI, batch, evaluate and bench catch), its message kept."""
+    missing = tmp_path / "missing.pt"
+    with pytest.raises(DetectorWeightsError, match="GLAMpoints weights file not found") as error:
+        FeatureExtractor(FeaturesConfig(detector="glampoints", weights=str(missing)))
+    assert isinstance(error.value, MosaicError)
+    assert type(error.value.__cause__).__name__ == "WeightsError"
 
 
 def test_glampoints_extra_scale_adds_coarse_points_described_larger(fundus):
