@@ -23,7 +23,6 @@ import csv
 import fnmatch
 import html
 import io
-import json
 import logging
 import math
 import os
@@ -48,6 +47,7 @@ from urllib.parse import quote
 from mosaic.config import Config, load_config
 from mosaic.errors import InputError, MosaicError, OutputError
 from mosaic.io import keep_native_stderr, natural_key, write_json, write_text
+from mosaic.report import BuildReport, Summary, read_report
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 
 log = logging.getLogger(__name__)
@@ -329,31 +329,39 @@ def _folder_paths(out_dir: Path, task_id: str) -> dict[str, Path]:
     }
 
 
+def _summary_cells(summary: Summary | None) -> dict[str, Any]:
+    """A row's figures from a video's report summary (None each without one)."""
+    if summary is None:
+        names = ("frames", "registered", "registered_pct", "frames_until_failure", "segments")
+        return dict.fromkeys((*names, "fps"))
+    frames, registered = summary.frames_read, summary.registered
+    return {
+        "frames": frames,
+        "registered": registered,
+        "registered_pct": round(100.0 * registered / frames, 1) if frames else None,
+        "frames_until_failure": summary.frames_until_failure,
+        "segments": summary.segments,
+        "fps": summary.fps,
+    }
+
+
 def row_of(
     task: VideoTask,
     out_dir: Path,
-    report: dict[str, Any] | None,
+    report: BuildReport | None,
     status: str,
     error: str | None = None,
     time_s: float | None = None,
 ) -> dict[str, Any]:
     """The summary row of a video, from its report where there is one."""
     paths = _folder_paths(out_dir, task.id)
-    summary = (report or {}).get("summary", {})
-    frames = summary.get("frames_read")
-    registered = summary.get("registered")
-    pct = round(100.0 * registered / frames, 1) if frames else None
-    seconds = time_s if time_s is not None else summary.get("wall_time_s")
-    has_mosaic = report is not None and report.get("mosaic") is not None
+    summary = None if report is None else report.summary
+    seconds = time_s if time_s is not None or summary is None else summary.wall_time_s
+    has_mosaic = report is not None and report.mosaic is not None
     return {
         "id": task.id,
         "status": status,
-        "frames": frames,
-        "registered": registered,
-        "registered_pct": pct,
-        "frames_until_failure": summary.get("frames_until_failure"),
-        "segments": summary.get("segments"),
-        "fps": summary.get("fps"),
+        **_summary_cells(summary),
         "time_s": None if seconds is None else round(seconds, 2),
         "error": error,
         "video": str(task.video),
@@ -367,19 +375,16 @@ def row_of(
     } | ({"patient": task.patient, "visit": task.visit} if task.patient else {})
 
 
-def done_report(task: VideoTask, out_dir: Path) -> dict[str, Any] | None:
+def done_report(task: VideoTask, out_dir: Path) -> BuildReport | None:
     """The report of a video already done (complete, its mosaic there, the same input), else
     None: what `--resume` skips."""
     paths = _folder_paths(out_dir, task.id)
-    try:
-        report = json.loads(paths["report"].read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    if not isinstance(report, dict) or not report.get("summary", {}).get("complete"):
+    report = read_report(paths["report"])
+    if report is None or not report.summary.complete:
         return None
     if not paths["mosaic"].is_file():
         return None
-    if report.get("input", {}).get("path") != str(task.video):
+    if report.input is None or report.input.path != str(task.video):
         return None
     return report
 
@@ -423,7 +428,7 @@ def process_video(
                 )
             except MosaicError as exc:
                 log.error("%s", exc)
-                report = _read_json(paths["report"]) if paths["report"].is_file() else None
+                report = read_report(paths["report"]) if paths["report"].is_file() else None
                 elapsed = time.perf_counter() - started
                 return row_of(task, out_dir, report, FAILED, str(exc), elapsed)
             except Exception as exc:
@@ -447,13 +452,6 @@ def _remove_outputs(paths: dict[str, Path]) -> None:
     stale += paths["folder"].glob(f"{Path(MOSAIC).stem}_seg*{Path(MOSAIC).suffix}")
     for path in stale:
         path.unlink(missing_ok=True)
-
-
-def _read_json(path: Path) -> dict[str, Any] | None:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
 
 
 def die_with_parent(parent_pid: int) -> None:

@@ -46,6 +46,7 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
     from mosaic.pairs import register_pair
     from mosaic.refine import warp_check
     from mosaic.registration import MODELS
+    from mosaic.report import BuildReport, Summary
     from mosaic.runner import Outputs, run_video
     from mosaic.synthetic.synth import SynthParams, pick_source, write_synthetic_video
     from mosaic.viz import VIEWER_MODES, RerunViewer, Viewer, make_viewer
@@ -188,19 +189,19 @@ def _config(
     return with_overrides(config, **overrides) if overrides else config
 
 
-def _segments_row(report: dict[str, Any]) -> str:
+def _segments_row(report: BuildReport) -> str:
     """The segment count; with several, each one's frames and which is the main mosaic."""
-    segments = report.get("segments") or []
+    segments = report.segments
     if len(segments) < 2:
-        return str(report["summary"]["segments"])
-    sizes = " / ".join(str(s["frames"]) for s in segments)
-    return f"{len(segments)} ({sizes} frames; main mosaic: segment {report.get('main_segment')})"
+        return str(report.summary.segments)
+    sizes = " / ".join(str(s.frames) for s in segments)
+    return f"{len(segments)} ({sizes} frames; main mosaic: segment {report.main_segment})"
 
 
-def _detector_row(summary: dict[str, Any]) -> str:
+def _detector_row(summary: Summary) -> str:
     """The detector, with the precision its network ran in where it has one."""
-    precision = summary.get("precision")
-    return f"{summary['detector']} ({precision})" if precision else str(summary["detector"])
+    precision = summary.precision
+    return f"{summary.detector} ({precision})" if precision else str(summary.detector)
 
 
 def _cell(value: Any) -> str:
@@ -209,37 +210,36 @@ def _cell(value: Any) -> str:
     return "-" if value is None else str(value)
 
 
-def _print_summary(report: dict[str, Any], output: Path, report_path: Path) -> None:
-    summary = report["summary"]
-    quality = _cell(summary.get("quality"))
+def _print_summary(report: BuildReport, output: Path, report_path: Path) -> None:
+    summary = report.summary
     rows = [
-        ("frames read", summary["frames_read"]),
-        ("registered", summary["registered"]),
-        ("failed", summary["failed"]),
-        ("skipped", summary["skipped"]),
-        ("frames until failure", summary["frames_until_failure"]),
-        ("longest registered run", summary["longest_registered_run"]),
+        ("frames read", summary.frames_read),
+        ("registered", summary.registered),
+        ("failed", summary.failed),
+        ("skipped", summary.skipped),
+        ("frames until failure", summary.frames_until_failure),
+        ("longest registered run", summary.longest_registered_run),
         ("segments", _segments_row(report)),
-        ("mean matches / inliers", f"{summary['mean_matches']} / {summary['mean_inliers']}"),
-        ("quality / flagged", f"{quality} / {summary.get('quality_flagged', 0)}"),
-        ("frames per second", summary["fps"]),
+        ("mean matches / inliers", f"{summary.mean_matches} / {summary.mean_inliers}"),
+        ("quality / flagged", f"{_cell(summary.quality)} / {summary.quality_flagged}"),
+        ("frames per second", summary.fps),
         ("detector", _detector_row(summary)),
     ]
-    if summary.get("deinterlaced"):  # an interlaced camera: how many frames were combed
-        rows.insert(4, ("deinterlaced", summary["deinterlaced"]))
-    elif summary.get("looks_interlaced"):
+    if summary.deinterlaced:  # an interlaced camera: how many frames were combed
+        rows.insert(4, ("deinterlaced", summary.deinterlaced))
+    elif summary.looks_interlaced:
         rows.insert(4, ("looks interlaced", "yes (see [preprocess] deinterlace)"))
-    if summary.get("reflex_frames"):  # lens reflexes left out of those frames
-        rows.insert(4, ("lens reflexes masked", f"{summary['reflex_frames']} frames"))
-    if summary.get("lens_rim_frames"):  # a handheld lens: what lay outside its rim left out
-        rows.insert(4, ("lens rim masked", f"{summary['lens_rim_frames']} frames"))
+    if summary.reflex_frames:  # lens reflexes left out of those frames
+        rows.insert(4, ("lens reflexes masked", f"{summary.reflex_frames} frames"))
+    if summary.lens_rim_frames:  # a handheld lens: what lay outside its rim left out
+        rows.insert(4, ("lens rim masked", f"{summary.lens_rim_frames} frames"))
     width = max(len(name) for name, _ in rows)
     typer.echo("\n".join(f"{name:<{width}}  {_cell(value)}" for name, value in rows))
     typer.echo(f"mosaic: {output}")
-    segments = report.get("segments") or []
+    segments = report.segments
     for segment in segments if len(segments) > 1 else []:
-        if segment.get("mosaic"):
-            typer.echo(f"segment {segment['index']}: {segment['mosaic']}")
+        if segment.mosaic:
+            typer.echo(f"segment {segment.index}: {segment.mosaic}")
     typer.echo(f"report: {report_path}")
 
 

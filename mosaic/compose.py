@@ -56,10 +56,8 @@ from mosaic.io import Lookahead
 from mosaic.photometry import (
     DARK,
     SATURATED,
-    FlatFieldEstimator,
     FrameQuality,
     GainObservations,
-    SideBands,
     VideoPhotometry,
     analysis_factor,
     channel_max,
@@ -1230,107 +1228,3 @@ def _observe_cells(
     rows, cols = np.nonzero(good)
     cells = (rows + y0) * grid.shape[1] + (cols + x0)
     st.observations.add(index, cells, values.reshape((*good.shape, -1)).mean(axis=2)[good])
-
-
-# ------------------------------------------------------------------------------------ report
-
-# where the report reads the flat-field out: (name, x, y), -1 / 1 the centre of the first /
-# last pixel along a side, 0 the frame's centre
-_FLAT_PLACES = (
-    ("top_left", -1, -1),
-    ("top_right", 1, -1),
-    ("bottom_left", -1, 1),
-    ("bottom_right", 1, 1),
-    ("left", -1, 0),
-    ("right", 1, 0),
-    ("top", 0, -1),
-    ("bottom", 0, 1),
-)
-
-
-def photometry_report(
-    config: ComposeConfig,
-    photometry: VideoPhotometry,
-    frame_shape: tuple[int, int] | None,
-    gains: dict[int, float],
-    solution: str | None,
-) -> dict[str, object]:
-    """What the compositing estimated, JSON-ready and compact (the report's `compose`): the
-    frame size, the side bands left out (px per side), the flat-field (its model's
-    coefficients and its value at the frame's corners and mid-sides relative to the centre) and
-    a summary of the exposure gains (`gains`: frame index -> gain; `solution`: "global", "live"
-    or None). None where a correction is off or has no estimate yet."""
-    bands = photometry.bands if config.side_bands else None
-    return {
-        "frame_size": None if frame_shape is None else [frame_shape[1], frame_shape[0]],
-        "side_bands": None if bands is None else _bands_report(bands, frame_shape),
-        "flatfield": _flatfield_report(photometry) if config.flatfield else None,
-        "exposure": _gains_report(gains, solution) if config.exposure else None,
-    }
-
-
-def _bands_report(bands: SideBands, frame_shape: tuple[int, int] | None) -> dict[str, object]:
-    """Widths (px) left out along each side, and the columns / rows they are (half-open
-    [start, end) ranges of the frame as decoded; empty where the frame size is unknown)."""
-    widths = {side: int(getattr(bands, side)) for side in ("left", "right", "top", "bottom")}
-    columns: list[list[int]] = []
-    rows: list[list[int]] = []
-    if frame_shape is not None:
-        h, w = frame_shape
-        columns = [[0, widths["left"]]] if widths["left"] else []
-        columns += [[w - widths["right"], w]] if widths["right"] else []
-        rows = [[0, widths["top"]]] if widths["top"] else []
-        rows += [[h - widths["bottom"], h]] if widths["bottom"] else []
-    return {**widths, "columns": columns, "rows": rows}
-
-
-def _flatfield_report(photometry: VideoPhotometry) -> dict[str, object] | None:
-    """The flat-field profile in a few numbers: the coefficients c of its log-shading model
-    (`photometry.shading_terms`: x², xy, y², r⁴ in normalised frame coordinates, fitted back
-    to the profile), its value at the corners and mid-sides relative to the frame's centre
-    (0.65: 35 % darker there), and its lowest value, likewise."""
-    flat = photometry.flatfield
-    if flat is None:
-        return None
-    profile = flat.profile
-    h, w = profile.shape
-    step = max(1, max(h, w) // 160)  # a grid of ~160 along the longer side is plenty
-    ys, xs = np.mgrid[0:h:step, 0:w:step]
-    xn = (xs - (w - 1) / 2) / (w / 2)
-    yn = (ys - (h - 1) / 2) / (h / 2)
-    values = profile[ys, xs].astype(np.float64)
-    fitted = values > FlatFieldEstimator.MIN_PROFILE * 1.001  # not where it was clipped
-    coefficients = None  # (a profile clipped almost everywhere has none)
-    if fitted.sum() >= 10:
-        design = np.column_stack([shading_terms(xn, yn)[fitted], np.ones(int(fitted.sum()))])
-        coef = np.linalg.lstsq(design, np.log(values[fitted]), rcond=None)[0]
-        coefficients = [round(float(c), 4) for c in coef[:-1]]
-
-    def at(x: float, y: float) -> float:  # bilinear, at normalised (x, y) of pixel centres
-        px = (w - 1) / 2 + x * (w - 1) / 2
-        py = (h - 1) / 2 + y * (h - 1) / 2
-        return float(cv2.getRectSubPix(profile, (1, 1), (px, py))[0, 0])
-
-    centre = at(0.0, 0.0)
-    return {
-        "model": "log shading = c . (x^2, xy, y^2, r^4), x, y in [-1, 1] over the frame",
-        "coefficients": coefficients,
-        "relative_to_centre": {name: round(at(x, y) / centre, 4) for name, x, y in _FLAT_PLACES},
-        "min_relative_to_centre": round(float(profile.min()) / centre, 4),
-        "frames": photometry.flat_estimator.n_frames,
-    }
-
-
-def _gains_report(gains: dict[int, float], solution: str | None) -> dict[str, object]:
-    """How the per-frame gains (each frame's entry has its own) were found, and their range."""
-    values = np.array([g for g in gains.values() if g is not None and np.isfinite(g)], float)
-    if not len(values):
-        return {"solution": None, "frames": 0, "min": None, "median": None, "max": None}
-    return {
-        "solution": solution,
-        "model": "gain",  # one factor per frame for all channels; no bias
-        "frames": len(values),
-        "min": round(float(values.min()), 4),
-        "median": round(float(np.median(values)), 4),
-        "max": round(float(values.max()), 4),
-    }

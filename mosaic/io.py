@@ -567,11 +567,15 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
+def json_text(obj: Any) -> str:
+    """`obj` as indented JSON text (numpy values converted): what `write_json` writes."""
+    return json.dumps(obj, default=_json_default, indent=2)
+
+
 def write_json(path: str | Path, obj: Any) -> Path:
     """Write `obj` as indented JSON atomically (numpy values converted); OutputError on failure."""
     p = Path(path).expanduser()
-    text = json.dumps(obj, default=_json_default, indent=2)
-    write_text(p, text + "\n")
+    write_text(p, json_text(obj) + "\n")
     return p
 
 

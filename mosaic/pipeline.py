@@ -58,7 +58,14 @@ from mosaic.preprocess import (
 from mosaic.quality import frame_vs_canvas
 from mosaic.refine import lk_texture
 from mosaic.registration import Registration
-from mosaic.report import FAILED, REGISTERED, SKIPPED, ReportInputs, build_report
+from mosaic.report import (
+    FAILED,
+    REGISTERED,
+    SKIPPED,
+    BuildReport,
+    ReportInputs,
+    build_report,
+)
 from mosaic.scheduling import OverlapTrial, Turns
 from mosaic.tracking import Track, Tracker, make_tracker
 from mosaic.viz import NullViewer, Viewer
@@ -138,10 +145,10 @@ class SegmentMosaic:
 
 @dataclass(frozen=True)
 class MosaicResult:
-    """Rendered segments (largest first is `main`) and the JSON-ready report."""
+    """Rendered segments (largest first is `main`) and the report."""
 
     segments: list[SegmentMosaic]
-    report: dict[str, Any]
+    report: BuildReport
 
     @property
     def main(self) -> SegmentMosaic | None:

@@ -31,7 +31,6 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -53,6 +52,7 @@ from mosaic.io import (
     write_json,
 )
 from mosaic.pipeline import FrameRecord, MosaicBuilder, MosaicResult, Reread
+from mosaic.report import BuildReport, Summary
 from mosaic.viz import Viewer
 
 log = logging.getLogger(__name__)
@@ -128,7 +128,7 @@ class VideoRun:
 
     info: VideoInfo
     result: MosaicResult
-    report: dict[str, Any]  # `result.report` with the input, the output paths, completeness
+    report: BuildReport  # `result.report` with the input, the output paths, completeness
     interrupted: bool = False  # Ctrl-C: the frames so far, live canvas, unrefined poses
     error: str | None = None  # an exception after which the same was written instead
 
@@ -137,8 +137,8 @@ class VideoRun:
         return not self.interrupted and self.error is None
 
     @property
-    def summary(self) -> dict[str, Any]:
-        return self.report["summary"]
+    def summary(self) -> Summary:
+        return self.report.summary
 
 
 def _one_line(exc: BaseException) -> str:
@@ -322,43 +322,61 @@ def _write_outputs(
     interrupted: bool = False,
     error: str | None = None,
     checkpoint: bool = False,
-) -> dict[str, Any]:
+) -> BuildReport:
     """Segments, mosaic, thumbnail, then the report (its `summary.complete` marks them whole).
 
     `checkpoint`: the live state of a run still going (`summary.checkpoint`, never complete)."""
-    report: dict[str, Any] = {
-        "input": {**dataclasses.asdict(info), "path": str(info.path)},
-        **result.report,
-    }
-    summary = report["summary"]
+    report = dataclasses.replace(
+        result.report, input=dataclasses.replace(info, path=str(info.path))
+    )
     main = result.main
     if outputs.mosaic is not None and main is not None:
         output = outputs.mosaic
+        paths = [output]
         if len(result.segments) > 1:
-            for segment, entry in zip(result.segments, report["segments"], strict=True):
-                path = segment_path(output, segment.index)
+            paths = [segment_path(output, segment.index) for segment in result.segments]
+            for segment, path in zip(result.segments, paths, strict=True):
                 write_image(path, segment.image)
-                entry["mosaic"] = str(path)
-        else:
-            report["segments"][0]["mosaic"] = str(output)
+        segments = [
+            dataclasses.replace(entry, mosaic=str(path))
+            for entry, path in zip(report.segments, paths, strict=True)
+        ]
         write_image(output, main.image)
-        report["mosaic"] = str(output)
-        report["main_segment"] = main.index
+        thumbnail_path = None
         if outputs.thumbnail is not None:
             write_image(outputs.thumbnail, thumbnail(main.image))
-            report["thumbnail"] = str(outputs.thumbnail)
-    summary["complete"] = not interrupted and error is None and not checkpoint
-    summary["checkpoint"] = checkpoint
-    if not summary["complete"]:  # the live canvas and poses were kept
-        summary["interrupted"] = interrupted
-        if isinstance(summary.get("tracking"), dict):
-            summary["tracking"]["rerendered"] = False
-    if error is not None:
-        summary["error"] = error
-    summary["wall_time_s"] = round(time.perf_counter() - started, 3)
+            thumbnail_path = str(outputs.thumbnail)
+        report = dataclasses.replace(
+            report,
+            segments=segments,
+            mosaic=str(output),
+            main_segment=main.index,
+            thumbnail=thumbnail_path,
+        )
+    report = dataclasses.replace(
+        report, summary=_written_summary(report.summary, started, interrupted, error, checkpoint)
+    )
     if outputs.report is not None:
-        write_json(outputs.report, report)
+        write_json(outputs.report, report.to_dict())
     if outputs.mosaic is not None and main is None and not checkpoint:
         written = f" (report: {outputs.report})" if outputs.report is not None else ""
         raise MosaicError(f"no frame could be placed on the mosaic{written}")
     return report
+
+
+def _written_summary(
+    summary: Summary, started: float, interrupted: bool, error: str | None, checkpoint: bool
+) -> Summary:
+    """The summary as written: complete only for a run that ended normally (else the live
+    canvas and poses were kept: not re-rendered), the error, the wall time."""
+    complete = not interrupted and error is None and not checkpoint
+    if not complete:
+        tracking = dataclasses.replace(summary.tracking, rerendered=False)
+        summary = dataclasses.replace(summary, interrupted=interrupted, tracking=tracking)
+    return dataclasses.replace(
+        summary,
+        complete=complete,
+        checkpoint=checkpoint,
+        error=error if error is not None else summary.error,
+        wall_time_s=round(time.perf_counter() - started, 3),
+    )

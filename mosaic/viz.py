@@ -69,6 +69,7 @@ if TYPE_CHECKING:
     from mosaic.config import Config
     from mosaic.io import VideoInfo
     from mosaic.pipeline import FrameEvent
+    from mosaic.report import BuildReport
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +106,7 @@ class Viewer(Protocol):
         """One frame was processed (registered, failed or skipped)."""
         ...
 
-    def finish(self, report: dict[str, Any], mosaic: np.ndarray | None = None) -> None:
+    def finish(self, report: BuildReport, mosaic: np.ndarray | None = None) -> None:
         """The run ended; `report` is the final report, `mosaic` the written main mosaic."""
         ...
 
@@ -130,7 +131,7 @@ class NullViewer:
     def frame(self, event: FrameEvent) -> None:
         pass
 
-    def finish(self, report: dict[str, Any], mosaic: np.ndarray | None = None) -> None:
+    def finish(self, report: BuildReport, mosaic: np.ndarray | None = None) -> None:
         pass
 
     def comparison(
@@ -621,7 +622,7 @@ class RerunViewer:
 
     # ------------------------------------------------------------------------------ end
 
-    def finish(self, report: dict[str, Any], mosaic: np.ndarray | None = None) -> None:
+    def finish(self, report: BuildReport, mosaic: np.ndarray | None = None) -> None:
         """Log the final canvas snapshot, the written mosaic (after refinement and
         re-rendering, it can differ from the live canvas) and the report, then `close`."""
         if self._finished:
@@ -643,12 +644,11 @@ class RerunViewer:
                 rr.EncodedImage(contents=jpeg, media_type="image/jpeg"),
                 static=True,
             )
-        summary = report.get("summary", {})
-        text = "# Run report\n\n" + _markdown_table(summary)
-        if report.get("segments"):
+        text = "# Run report\n\n" + _markdown_table(report.summary.to_dict())
+        if report.segments:
             text += "\n## Segments\n\n" + "\n".join(
-                f"- segment {s['index']}: {s['frames']} frames, {s['width']}x{s['height']} px"
-                for s in report["segments"]
+                f"- segment {s.index}: {s.frames} frames, {s.width}x{s.height} px"
+                for s in report.segments
             )
         rec.log("run/report", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
         self.close()

@@ -82,6 +82,14 @@ def build_from_folder(folder, config):
     return builder.finish(reread=reread)
 
 
+def empty_report():
+    """The report of a builder that has seen no frame (a `BuildReport` for viewer tests)."""
+    from mosaic.config import Config, with_overrides
+    from mosaic.pipeline import MosaicBuilder
+
+    return MosaicBuilder(with_overrides(Config(), features={"detector": "orb"})).snapshot().report
+
+
 def chattr(path, flag: str) -> bool:
     """`chattr FLAG PATH` (e.g. "+i": immutable); False where the tool or the right is missing."""
     import shutil

@@ -119,7 +119,7 @@ def test_a_lens_rim_clip_is_placed_within_10_px_with_the_mask_and_not_without(cl
         builder = MosaicBuilder(with_overrides(Config(), preprocess={"lens_rim_mask": mask}))
         for index, image in enumerate(frames):
             builder.process(index, image)
-        report = builder.finish(reread=lambda: enumerate(frames)).report
+        report = builder.finish(reread=lambda: enumerate(frames)).report.to_dict()
         errors[mask] = errors_to_first(report["frames"], truth, CLIP.size)
         rims = [f["lens_rim"] for f in report["frames"] if f["lens_rim"] is not None]
         assert report["summary"]["lens_rim_frames"] == len(rims) == (len(frames) if mask else 0)

@@ -350,7 +350,7 @@ def test_striped_side_bands_stay_out_of_the_built_mosaic(tmp_path) -> None:
     def stripes(config: Config) -> float:
         """Row-to-row alternation (|2 I(y) - I(y-1) - I(y+1)|) of the mosaic's green."""
         result = build_from_folder(folder, config)
-        assert result.report["summary"]["registered"] == 16
+        assert result.report.to_dict()["summary"]["registered"] == 16
         g = result.main.image[..., 1].astype(np.float32)
         covered = result.main.image.any(axis=2)
         inner = cv2.erode(covered.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0

@@ -71,12 +71,12 @@ def video(tmp_path_factory):
 def test_chained_homographies_follow_the_ground_truth(video):
     folder, gt = video
     result = _run(folder, _config())
-    summary = result.report["summary"]
+    summary = result.report.to_dict()["summary"]
     assert summary["frames_read"] == 24
     assert summary["registered"] == 24
     assert summary["frames_until_failure"] == 24
     assert summary["segments"] == 1
-    errors = _errors_to_first(result.report["frames"], gt, SIZE)
+    errors = _errors_to_first(result.report.to_dict()["frames"], gt, SIZE)
     assert np.mean(errors) < 3.0, errors
     assert np.max(errors) < 6.0, errors
 
@@ -86,7 +86,7 @@ def test_mosaic_pixels_agree_with_the_frames(video):
     result = _run(folder, _config())
     mosaic = result.main.image
     frame_index = 12
-    entry = result.report["frames"][frame_index]
+    entry = result.report.to_dict()["frames"][frame_index]
     frame = cv2.imread(str(sorted(folder.glob("*.png"))[frame_index]))
     H = np.array(entry["H_to_canvas"])
     warped = cv2.warpPerspective(frame, H, (mosaic.shape[1], mosaic.shape[0]))
@@ -99,24 +99,24 @@ def test_mosaic_pixels_agree_with_the_frames(video):
 def test_skip_policy_drops_a_bad_frame_and_goes_on(video):
     folder, _ = video
     result = _run(folder, _config(on_failure="skip"), bad={5})
-    summary = result.report["summary"]
-    statuses = [f["status"] for f in result.report["frames"]]
+    summary = result.report.to_dict()["summary"]
+    statuses = [f["status"] for f in result.report.to_dict()["frames"]]
     assert statuses[5] == "failed" and statuses.count("registered") == 23
     assert summary["frames_until_failure"] == 5
     assert summary["longest_registered_run"] == 18
-    assert result.report["frames"][5]["H_to_canvas"] is None
+    assert result.report.to_dict()["frames"][5]["H_to_canvas"] is None
 
 
 def test_a_first_frame_nothing_registers_to_is_dropped_and_the_mosaic_starts_again(video):
     folder, gt = video
     result = _run(folder, _config(on_failure="skip"), bad={0})  # opens on a frame of noise
-    frames = result.report["frames"]
+    frames = result.report.to_dict()["frames"]
     statuses = [f["status"] for f in frames]
     # frames 1-5 fail against frame 0; frame 5 registers to frame 4, which becomes the first
     assert statuses[:4] == ["failed"] * 4 and statuses[4:] == ["registered"] * 20
     assert frames[0]["reason"].startswith("dropped as the mosaic's first frame")
     assert frames[0]["H_to_canvas"] is None and frames[5]["reference"] == 4
-    assert result.report["summary"]["segments"] == 1 and result.main.n_frames == 20
+    assert result.report.to_dict()["summary"]["segments"] == 1 and result.main.n_frames == 20
     errors = errors_to_first(frames[4:], gt, SIZE)[1:]
     assert np.mean(errors) < 3.0 and np.max(errors) < 6.0, errors
 
@@ -124,7 +124,7 @@ def test_a_first_frame_nothing_registers_to_is_dropped_and_the_mosaic_starts_aga
 def test_without_reanchoring_an_unregistrable_first_frame_fails_the_video(video):
     folder, _ = video
     result = _run(folder, _config(on_failure="skip", reanchor_after=0), bad={0})
-    statuses = [f["status"] for f in result.report["frames"]]
+    statuses = [f["status"] for f in result.report.to_dict()["frames"]]
     assert statuses == ["registered"] + ["failed"] * 23
 
 
@@ -136,7 +136,7 @@ def test_a_camera_that_leaves_the_mapped_area_starts_a_new_segment_and_comes_bac
         for index, image in enumerate(images):
             builder.process(index, image)
         results[after] = builder.finish()
-    frames = results[4].report["frames"]
+    frames = results[4].report.to_dict()["frames"]
     statuses = [f["status"] for f in frames]
     # 12-15 fail against the mosaic; at the 4th failure 15 registers to 14: a new segment
     assert statuses[12:14] == ["failed"] * 2 and statuses[14:] == ["registered"] * 26
@@ -150,9 +150,9 @@ def test_a_camera_that_leaves_the_mapped_area_starts_a_new_segment_and_comes_bac
         errors = errors_to_first(placed, truth, SIZE)[1:]
         assert np.mean(errors) < 3.0 and np.max(errors) < 6.0, errors
     # without it the frames of the other area fail, and the first segment is the same
-    without = results[0].report["frames"]
+    without = results[0].report.to_dict()["frames"]
     assert [f["status"] for f in without[12:28]] == ["failed"] * 16
-    assert results[0].report["summary"]["segments"] == 1
+    assert results[0].report.to_dict()["summary"]["segments"] == 1
     for a, b in zip(first, without[:12] + without[28:], strict=True):
         np.testing.assert_allclose(a["H_to_canvas"], b["H_to_canvas"], atol=1e-9)
 
@@ -193,13 +193,13 @@ def test_a_new_segment_the_camera_comes_back_from_joins_the_first():
     live = _build_segments(images, None)  # no re-render: the live canvases cannot be joined
     assert len(live.segments) == 2
     joined = _build_segments(images, lambda: enumerate(images))
-    frames = joined.report["frames"]
+    frames = joined.report.to_dict()["frames"]
     statuses = [f["status"] for f in frames]
     assert statuses[10:16] == ["failed"] * 6 and statuses.count("registered") == len(images) - 6
-    assert len(joined.segments) == 1 and joined.report["summary"]["segments"] == 1
+    assert len(joined.segments) == 1 and joined.report.to_dict()["summary"]["segments"] == 1
     assert joined.main.n_frames == len(images) - 6
-    assert joined.report["summary"]["tracking"]["joined_segments"] == 1
-    assert live.report["summary"]["tracking"]["joined_segments"] == 0
+    assert joined.report.to_dict()["summary"]["tracking"]["joined_segments"] == 1
+    assert live.report.to_dict()["summary"]["tracking"]["joined_segments"] == 0
     assert {f["segment"] for f in frames if f["status"] == "registered"} == {0}
     placed = [f for f in frames if f["status"] == "registered"]
     errors = errors_to_first(placed, truth, SIZE)[1:]
@@ -216,9 +216,9 @@ def test_segments_stay_apart_where_the_first_cannot_be_rendered_again():
         return ((i, None if i == 3 else image) for i, image in enumerate(images))
 
     result = _build_segments(images, reread)
-    frames = result.report["frames"]
-    assert result.report["summary"]["tracking"]["joined_segments"] == 0
-    assert len(result.segments) == 2 and result.report["summary"]["segments"] == 2
+    frames = result.report.to_dict()["frames"]
+    assert result.report.to_dict()["summary"]["tracking"]["joined_segments"] == 0
+    assert len(result.segments) == 2 and result.report.to_dict()["summary"]["segments"] == 2
     registered = [f for f in frames if f["status"] == "registered"]
     assert sum(m.n_frames for m in result.segments) == len(registered) == len(images) - 6
     later = [f for f in registered if f["segment"] == 1]
@@ -241,7 +241,7 @@ def test_a_camera_back_over_a_later_segment_continues_it():
     for index, image in enumerate(images):
         builder.process(index, image)
     result = builder.finish()
-    frames = result.report["frames"]
+    frames = result.report.to_dict()["frames"]
     segments = [f["segment"] for f, x in zip(frames, xs, strict=True) if x is not None]
     assert segments == [0] * 10 + [None] * 2 + [1] * 6 + [0] * 5 + [None] * 3 + [1] * 5
     assert len(result.segments) == 2
@@ -256,7 +256,7 @@ def test_a_camera_back_over_a_later_segment_continues_it():
 def test_stop_policy_ends_at_the_first_failure(video):
     folder, _ = video
     result = _run(folder, _config(on_failure="stop"), bad={7})
-    summary = result.report["summary"]
+    summary = result.report.to_dict()["summary"]
     assert summary["frames_read"] == 8
     assert summary["frames_until_failure"] == 7
     assert summary["stopped_at_failure"]
@@ -271,7 +271,7 @@ def test_restart_policy_starts_a_new_segment(video, tmp_path):
     for index, image in enumerate(images):
         builder.process(index, image)
     result = builder.finish()
-    frames = result.report["frames"]
+    frames = result.report.to_dict()["frames"]
     assert len(result.segments) == 2
     assert frames[8]["status"] == "failed" and frames[8]["segment"] == 1
     assert {f["segment"] for f in frames[:8]} == {0}
@@ -283,10 +283,10 @@ def test_restart_policy_starts_a_new_segment(video, tmp_path):
 def test_corrupt_frame_is_skipped_and_counted(video):
     folder, _ = video
     result = _run(folder, _config(), corrupt={4})
-    summary = result.report["summary"]
+    summary = result.report.to_dict()["summary"]
     assert summary["skipped"] == 1 and summary["registered"] == 23
     assert summary["frames_until_failure"] == 23
-    assert result.report["frames"][4]["reason"] == "corrupt frame"
+    assert result.report.to_dict()["frames"][4]["reason"] == "corrupt frame"
 
 
 @pytest.mark.parametrize("on_failure", ["skip", "stop"])
@@ -312,7 +312,7 @@ def test_overlapped_stream_gives_the_serial_result(video, on_failure, monkeypatc
             for _ in builder.stream(damaged()):
                 if builder.stopped:
                     break
-        results[overlap] = builder.finish().report
+        results[overlap] = builder.finish().report.to_dict()
     serial = results["off"]
     assert serial["summary"]["overlap"] is False and results["on"]["summary"]["overlap"] is True
     if on_failure == "skip":  # all 24 frames: the trial has chosen
@@ -349,7 +349,7 @@ def test_glampoints_taking_turns_with_the_registration_gives_the_serial_result(v
         with open_frames(folder) as frames:
             for _ in builder.stream(frames):
                 pass
-        reports[overlap], turns[overlap] = builder.finish().report, builder._turns.on
+        reports[overlap], turns[overlap] = builder.finish().report.to_dict(), builder._turns.on
     assert turns["on"] == (torch.get_num_threads() > 1) and turns["off"] == turns["on"]
     serial = reports["off"]["frames"]
     assert [f["status"] for f in serial] == ["registered"] * 24
@@ -412,8 +412,8 @@ def test_overlap_trial_runs_again_and_follows_a_change(monkeypatch):
 def test_detecting_at_half_scale_still_follows_the_ground_truth(video):
     folder, gt = video
     result = _run(folder, with_overrides(_config(), features={"detect_scale": 0.5}))
-    frames = result.report["frames"]
-    assert result.report["summary"]["registered"] == 24
+    frames = result.report.to_dict()["frames"]
+    assert result.report.to_dict()["summary"]["registered"] == 24
     errors = _errors_to_first(frames, gt, SIZE)
     assert np.mean(errors) < 4.0, errors
 
@@ -449,7 +449,7 @@ def test_burned_in_overlay_is_masked_and_registration_follows_the_retina(tmp_pat
             preprocess={"overlay_mask": on},
             registration={"refine": False, "model": "homography"},
         )
-        frames = _run(folder, config).report["frames"]
+        frames = _run(folder, config).report.to_dict()["frames"]
         assert [f["status"] for f in frames] == ["registered"] * 24
         H0 = np.array(frames[0]["H_to_canvas"])
         mean_error[on] = np.mean(
@@ -482,8 +482,8 @@ def test_burned_in_overlay_is_left_out_of_the_rendered_mosaic(tmp_path):
             Config(), features={"detector": "sift"}, preprocess={"overlay_mask": overlay_mask}
         )
         result = build_from_folder(folder, config)
-        assert result.report["summary"]["tracking"]["rerendered"]
-        H_0_to_mosaic = np.array(result.report["frames"][0]["H_to_canvas"])
+        assert result.report.to_dict()["summary"]["tracking"]["rerendered"]
+        H_0_to_mosaic = np.array(result.report.to_dict()["frames"][0]["H_to_canvas"])
         # in frame 0's pixels, so that mosaics with different bounding boxes compare
         size = (2 * SIZE[0], 2 * SIZE[1])
         shift = np.array([[1, 0, SIZE[0] / 2], [0, 1, SIZE[1] / 2], [0, 0, 1]])
@@ -518,9 +518,9 @@ def test_large_frames_register_at_the_working_size_and_compose_at_full_size(vide
     big, gt_big = _upscaled(folder, gt, tmp_path / "big")
     small_result = _run(folder, _config())
     result = _run(big, with_overrides(_config(), preprocess={"max_side_px": 400}))
-    summary = result.report["summary"]
+    summary = result.report.to_dict()["summary"]
     assert summary["working_scale"] == 0.5 and summary["registered"] == 24
-    frames = result.report["frames"]
+    frames = result.report.to_dict()["frames"]
     errors = _errors_to_first(frames, gt_big, (2 * SIZE[0], 2 * SIZE[1]))
     assert np.mean(errors) < 6.0 and np.max(errors) < 12.0, errors  # the 1x bounds, doubled
     # the mosaic is composed from the full-size frames: twice the 1x mosaic, and its pixels
@@ -537,8 +537,8 @@ def test_large_frames_register_at_the_working_size_and_compose_at_full_size(vide
     assert np.median(np.abs(mosaic.astype(int) - warped.astype(int))[inside]) < 6
     # with the working size off, the same frames register at full size (slower, same answer)
     full = _run(big, with_overrides(_config(), preprocess={"max_side_px": 0}))
-    assert full.report["summary"]["working_scale"] == 1.0
-    assert full.report["summary"]["registered"] == 24
+    assert full.report.to_dict()["summary"]["working_scale"] == 1.0
+    assert full.report.to_dict()["summary"]["registered"] == 24
 
 
 def test_a_video_of_whole_retinas_is_registered_with_its_retina_at_the_detectors_scale(tmp_path):
@@ -554,15 +554,15 @@ def test_a_video_of_whole_retinas_is_registered_with_its_retina_at_the_detectors
         frame = cv2.warpPerspective(source, np.linalg.inv(G), (w, h))
         cv2.imwrite(str(folder / f"frame{k:02d}.png"), frame)
     result = _run(folder, _config())
-    summary = result.report["summary"]
+    summary = result.report.to_dict()["summary"]
     assert summary["retina_diameter_px"] == pytest.approx(1400.0, rel=0.01)  # 1411 px image
     assert summary["working_scale"] == pytest.approx(512 / summary["retina_diameter_px"], 1e-3)
     assert summary["registered"] == 6
-    errors = _errors_to_first(result.report["frames"], truth, (w, h))
+    errors = _errors_to_first(result.report.to_dict()["frames"], truth, (w, h))
     assert np.max(errors) < 3.0, errors  # full-resolution pixels
     off = _run(folder, with_overrides(_config(), preprocess={"fov_diameter_px": 0}))
-    assert off.report["summary"]["retina_diameter_px"] is None
-    assert off.report["summary"]["working_scale"] == pytest.approx(800 / 1411, 1e-3)
+    assert off.report.to_dict()["summary"]["retina_diameter_px"] is None
+    assert off.report.to_dict()["summary"]["working_scale"] == pytest.approx(800 / 1411, 1e-3)
 
 
 def test_the_retina_rule_changes_nothing_where_the_retina_is_under_fov_diameter_px(video):
@@ -571,11 +571,11 @@ def test_the_retina_rule_changes_nothing_where_the_retina_is_under_fov_diameter_
     folder, _ = video
     result = _run(folder, _config())
     off = _run(folder, with_overrides(_config(), preprocess={"fov_diameter_px": 0}))
-    assert result.report["summary"]["retina_diameter_px"] == pytest.approx(395, abs=5)
-    assert off.report["summary"]["retina_diameter_px"] is None
-    assert result.report["summary"]["working_scale"] == 1.0
-    poses = [f["H_to_canvas"] for f in result.report["frames"]]
-    assert poses == [f["H_to_canvas"] for f in off.report["frames"]]
+    assert result.report.to_dict()["summary"]["retina_diameter_px"] == pytest.approx(395, abs=5)
+    assert off.report.to_dict()["summary"]["retina_diameter_px"] is None
+    assert result.report.to_dict()["summary"]["working_scale"] == 1.0
+    poses = [f["H_to_canvas"] for f in result.report.to_dict()["frames"]]
+    assert poses == [f["H_to_canvas"] for f in off.report.to_dict()["frames"]]
 
 
 class _Events:
@@ -766,19 +766,19 @@ def test_an_interlaced_video_is_registered_on_its_first_fields(video, tmp_path):
     gt = load_ground_truth(write_synthetic_video(SAMPLE_IMAGE, folder, params))
     off = build_from_folder(folder, _config())
     on = build_from_folder(folder, with_overrides(_config(), preprocess={"deinterlace": True}))
-    summary_off, summary_on = off.report["summary"], on.report["summary"]
+    summary_off, summary_on = off.report.to_dict()["summary"], on.report.to_dict()["summary"]
     assert summary_off["looks_interlaced"] and summary_off["field_offset_px"] > 3
     assert summary_off["deinterlaced"] == 0
     assert summary_on["deinterlaced"] == 24 and summary_on["registered"] == 24
-    assert all(f["deinterlaced"] for f in on.report["frames"])
-    errors_off = _errors_to_first(off.report["frames"], gt, SIZE)
-    errors_on = _errors_to_first(on.report["frames"], gt, SIZE)
+    assert all(f["deinterlaced"] for f in on.report.to_dict()["frames"])
+    errors_off = _errors_to_first(off.report.to_dict()["frames"], gt, SIZE)
+    errors_on = _errors_to_first(on.report.to_dict()["frames"], gt, SIZE)
     progressive = build_from_folder(video[0], _config())  # the same seed, progressive
-    errors_progressive = _errors_to_first(progressive.report["frames"], video[1], SIZE)
+    errors_progressive = _errors_to_first(progressive.report.to_dict()["frames"], video[1], SIZE)
     # measured: combed 3.4 px, first fields 0.9 px, progressive 1.0 px
     assert np.mean(errors_on) < 0.4 * np.mean(errors_off), (errors_on, errors_off)
     assert np.mean(errors_on) < 1.5 * np.mean(errors_progressive) + 0.3
-    summary = progressive.report["summary"]
+    summary = progressive.report.to_dict()["summary"]
     assert not summary["looks_interlaced"] and summary["field_offset_px"] < 0.5
 
 
@@ -793,5 +793,5 @@ def test_the_report_says_which_precision_the_network_ran_in(tmp_path):
         ("sift", "auto", None),
     ):
         config = with_overrides(Config(), features={"detector": detector, "precision": precision})
-        summary = _run(folder, config).report["summary"]
+        summary = _run(folder, config).report.to_dict()["summary"]
         assert summary["precision"] == expected and summary["registered"] == 3, summary

@@ -125,7 +125,7 @@ def built(tmp_path_factory):
     params = SynthParams(n_frames=16, size=SIZE, seed=3, nuisances=False)
     gt = load_ground_truth(write_synthetic_video(SAMPLE_IMAGE, folder, params))
     result = _build(folder, with_overrides(Config(), features={"detector": "sift"}))
-    return folder, gt, result.report
+    return folder, gt, result.report.to_dict()
 
 
 def _build(folder: Path, config: Config):
@@ -157,7 +157,7 @@ def test_frames_under_the_threshold_are_flagged(built):
     strict = with_overrides(
         Config(), features={"detector": "sift"}, compose={"quality_threshold": 1.0}
     )
-    flagged = _build(folder, strict).report
+    flagged = _build(folder, strict).report.to_dict()
     assert [f["flagged"] for f in flagged["frames"]] == [False] + [True] * (
         len(report["frames"]) - 1
     )

@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic.compose import _FLAT_PLACES
 from mosaic.config import Config, with_overrides
 from mosaic.photometry import SideBandDetector
+from mosaic.report import FLAT_PLACES
 from mosaic.synthetic.synth import SynthParams, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import build_from_folder
@@ -48,7 +48,7 @@ def _clip(folder: Path, n: int, gains: np.ndarray, vignette: bool, bands: bool) 
 
 def _build(folder: Path) -> dict:
     report = build_from_folder(folder, with_overrides(Config(), features={"detector": "sift"}))
-    return report.report
+    return report.report.to_dict()
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +88,7 @@ def test_report_flatfield_matches_the_injected_vignetting(vignetted) -> None:
     assert flat is not None and flat["frames"] >= 8
     relative = flat["relative_to_centre"]
     errors = {}
-    for name, x, y in _FLAT_PLACES:  # -1 / 1: the first / last pixel along a side
+    for name, x, y in FLAT_PLACES:  # -1 / 1: the first / last pixel along a side
         truth = _vignette((1 + x) * (W - 1) / 2, (1 + y) * (H - 1) / 2)
         errors[name] = relative[name] / truth - 1
     # measured: corners -1.4 to +0.3 %, mid-sides under 0.6 % (other seeds: up to 4.6 % at
@@ -128,10 +128,10 @@ def test_report_compose_section_is_strict_json(vignetted, banded) -> None:
 
 
 def test_switched_off_corrections_report_null() -> None:
-    from mosaic.compose import photometry_report
     from mosaic.config import ComposeConfig
     from mosaic.photometry import VideoPhotometry
+    from mosaic.report import photometry_report
 
     config = ComposeConfig(exposure=False, flatfield=False, side_bands=False)
     section = photometry_report(config, VideoPhotometry(False, False), None, {}, None)
-    assert section == {"frame_size": None, "side_bands": None, "flatfield": None, "exposure": None}
+    assert section.to_dict() == dict.fromkeys(("frame_size", "side_bands", "flatfield", "exposure"))

@@ -49,7 +49,7 @@ def _run(config: Config, frames: list[np.ndarray]):
 
 def _errors_to_first(result, truth: list[np.ndarray]) -> np.ndarray:
     """Corner error (px) of each frame's pose relative to frame 0; inf when not placed."""
-    return errors_to_first(result.report["frames"], truth, SIZE)
+    return errors_to_first(result.report.to_dict()["frames"], truth, SIZE)
 
 
 def _noise(seed: int) -> np.ndarray:
@@ -65,13 +65,13 @@ def test_relocalisation_after_unusable_frames_continues_the_same_mosaic(trip):
     chain = _run(_config("chain"), video)
     keyframes = _run(_config("keyframes"), video)
     back = slice(33, 39)
-    chain_status = [f["status"] for f in chain.report["frames"][back]]
+    chain_status = [f["status"] for f in chain.report.to_dict()["frames"][back]]
     assert chain_status == ["failed"] * 6  # chaining only knows the last frame, far away
-    entries = keyframes.report["frames"][back]
+    entries = keyframes.report.to_dict()["frames"][back]
     registered = [f for f in entries if f["status"] == "registered"]
     assert len(registered) >= 4
     assert {f["segment"] for f in registered} == {0}
-    assert keyframes.report["summary"]["tracking"]["relocalised"] >= 1
+    assert keyframes.report.to_dict()["summary"]["tracking"]["relocalised"] >= 1
     errors = _errors_to_first(keyframes, video_truth)[back]
     assert np.all(errors[np.isfinite(errors)] < 5.0), errors
 
@@ -98,7 +98,7 @@ def test_loop_closure_reduces_drift_at_the_end_of_a_loop(fundus, trip):
     chain = _errors_to_first(_run(_config("chain"), video), video_truth)
     keyframes_run = _run(_config("keyframes"), video)
     keyframes = _errors_to_first(keyframes_run, video_truth)
-    tracking = keyframes_run.report["summary"]["tracking"]
+    tracking = keyframes_run.report.to_dict()["summary"]["tracking"]
     assert tracking["loop_closures"] >= 1
     assert np.isfinite(keyframes).all()
     assert keyframes[-1] < 3.0
@@ -115,7 +115,7 @@ def test_loop_closure_reduces_drift_at_the_end_of_a_loop(fundus, trip):
     bare = _config("keyframes", relocalise_candidates=0, loop_closure=False, bridge_keyframes=0)
     without = _run(_keypoint_links(with_overrides(bare, features=orb)), video)
     closed = _run(_keypoint_links(with_overrides(_config("keyframes"), features=orb)), video)
-    assert closed.report["summary"]["tracking"]["loop_closures"] >= 1
+    assert closed.report.to_dict()["summary"]["tracking"]["loop_closures"] >= 1
     drift_without = _errors_to_first(without, video_truth)
     drift_with = _errors_to_first(closed, video_truth)
     assert np.isfinite(drift_with).all() and np.isfinite(drift_without).all()
@@ -134,7 +134,7 @@ def test_refinement_lowers_the_graph_residual_and_the_error_to_the_truth(fundus)
     frames, truth = (list(x) for x in zip(*render_frames(fundus, params), strict=True))
     video, video_truth = frames + frames[::-1], truth + truth[::-1]
     result = _run(_keypoint_links(_config("keyframes")), video)
-    refinement = result.report["summary"]["tracking"]["refinement"][0]
+    refinement = result.report.to_dict()["summary"]["tracking"]["refinement"][0]
     assert refinement["rms_after_px"] < refinement["rms_before_px"]
     # the refined poses against the truth (measured: 0.58 px mean, 0.97 max; unrefined
     # 0.67 and 1.33)
@@ -158,7 +158,7 @@ def test_tilted_views_are_placed_better_by_the_tilted_pose_graph(fundus):
     )
     frames, truth = (list(x) for x in zip(*render_frames(fundus, params), strict=True))
     tilted = _run(_config("keyframes"), frames)
-    refinement = tilted.report["summary"]["tracking"]["refinement"][0]
+    refinement = tilted.report.to_dict()["summary"]["tracking"]["refinement"][0]
     assert refinement["pose_model"] == "tilted" and refinement["tilt_gain"] > 0.1
     errors = _errors_to_first(tilted, truth)
     former = _errors_to_first(_run(_config("keyframes", tilt_step_px=0.0), frames), truth)
@@ -175,10 +175,10 @@ def test_gating_skips_dark_frames_and_blurred_ones_where_told(trip):
     dark[:, 40:] = 0  # only a sliver of the view is lit
     video[11] = dark
     result = _run(with_overrides(_config("keyframes"), gating={"blurred": "skip"}), video)
-    frames_out = result.report["frames"]
+    frames_out = result.report.to_dict()["frames"]
     assert frames_out[9]["status"] == "skipped" and "blurred" in frames_out[9]["reason"]
     assert frames_out[11]["status"] == "skipped" and "field of view" in frames_out[11]["reason"]
-    summary = result.report["summary"]
+    summary = result.report.to_dict()["summary"]
     assert summary["skipped"] == 2 and summary["registered"] == 12
     assert summary["frames_until_failure"] == 12
 
@@ -201,12 +201,12 @@ BLURRED_PX = 3.0
 def test_blurred_frames_are_tracked_and_left_out_of_the_blend(trip):
     video, truth = _blurred_burst(trip, 4.0)
     result = _run(_config("keyframes"), video)
-    frames_out = result.report["frames"]
+    frames_out = result.report.to_dict()["frames"]
     for k in BURST:
         assert frames_out[k]["status"] == "registered" and frames_out[k]["blurred"]
         assert not frames_out[k]["blended"]
     assert all(f["blended"] for f in frames_out if f["index"] not in BURST)
-    assert result.report["summary"]["blurred_registered"] == 3
+    assert result.report.to_dict()["summary"]["blurred_registered"] == 3
     assert result.main is not None and result.main.n_frames == 13  # in the mosaic: the sharp
     errors = _errors_to_first(result, truth)
     assert errors[list(BURST)].max() < BLURRED_PX, errors
@@ -221,16 +221,16 @@ def test_frames_descriptors_miss_are_placed_by_flow(trip):
     # first; the next two register by descriptors to it (blurred alike)
     video, truth = _blurred_burst(trip, 6.0)
     result = _run(_config("keyframes"), video)
-    frames_out = result.report["frames"]
+    frames_out = result.report.to_dict()["frames"]
     assert frames_out[8]["by_flow"] and frames_out[8]["reference"] == 7
-    assert result.report["summary"]["tracking"]["placed_by_flow"] >= 1
+    assert result.report.to_dict()["summary"]["tracking"]["placed_by_flow"] >= 1
     errors = _errors_to_first(result, truth)
     assert errors[list(BURST)].max() < BLURRED_PX, errors
     no_flow = _run(
         with_overrides(_config("keyframes"), registration={"flow_fallback": False}), video
     )
-    assert [no_flow.report["frames"][k]["status"] for k in BURST] == ["skipped"] * 3
-    assert "not registered" in no_flow.report["frames"][8]["reason"]
+    assert [no_flow.report.to_dict()["frames"][k]["status"] for k in BURST] == ["skipped"] * 3
+    assert "not registered" in no_flow.report.to_dict()["frames"][8]["reason"]
 
 
 def _pan_across_a_featureless_gap(fundus, n=45, step=4.0):
@@ -260,7 +260,7 @@ def test_keyframe_is_promoted_before_registration_fails_on_a_slow_pan(fundus):
 
     def run(**keyframes):
         result = _run(_config("keyframes", **keyframes), frames)
-        return result.report, errors_to_first(result.report["frames"], truth, size)
+        return result.report, errors_to_first(result.report.to_dict()["frames"], truth, size)
 
     report, errors = run()
     tracking = report["summary"]["tracking"]
@@ -333,10 +333,10 @@ def test_bridging_links_tie_keyframes_without_adding_drift_on_realistic_video(fu
                 with_overrides(Config(), keyframes={"bridge_keyframes": bridge})
             )
             result = _run(config, frames)
-            tracking = result.report["summary"]["tracking"]
+            tracking = result.report.to_dict()["summary"]["tracking"]
             if bridge:
                 assert tracking["extra_links"] >= 10
-            e = errors_to_first(result.report["frames"], truth, params.size)
+            e = errors_to_first(result.report.to_dict()["frames"], truth, params.size)
             assert np.isfinite(e).mean() > 0.95
             errors.append(e[np.isfinite(e)].mean())
     assert max(with_bridges) < 10.0, with_bridges
@@ -464,11 +464,11 @@ def test_tracked_inliers_lower_the_error_of_a_realistic_video_without_perspectiv
     for window in (31, 0):
         config = with_overrides(Config(), registration={"track_window_px": window})
         result = _run(config, frames)
-        e = errors_to_first(result.report["frames"], truth, params.size)
+        e = errors_to_first(result.report.to_dict()["frames"], truth, params.size)
         assert np.isfinite(e).mean() > 0.95
         errors[window] = e[np.isfinite(e)].mean()
         if window:
-            tracking = result.report["summary"]["tracking"]
+            tracking = result.report.to_dict()["summary"]["tracking"]
     assert tracking["tracked_registrations"] >= 60
     assert tracking["perspective_relaxed"] < 0.3 * tracking["tracked_registrations"], tracking
     assert errors[31] < 0.85 * errors[0], errors
@@ -492,7 +492,7 @@ def test_lens_reflexes_fixed_in_the_frame_are_masked_and_every_frame_placed(fund
         params = SynthParams(**{**base.__dict__, "lens_reflexes": reflexes})
         frames, truth = (list(x) for x in zip(*render_frames(fundus, params), strict=True))
         config = with_overrides(Config(), preprocess={"reflex_mask": mask})
-        report = _run(config, frames).report
+        report = _run(config, frames).report.to_dict()
         e = errors_to_first(report["frames"], truth, params.size)
         assert e.max() < 10.0, (reflexes, mask, e.max())  # every frame placed, within 10 px
         masked = report["summary"]["reflex_frames"]

@@ -34,6 +34,7 @@ from mosaic.viz import (
     to_display,
 )
 from tests.conftest import SAMPLE_IMAGE
+from tests.helpers import empty_report
 
 rr_chunk = pytest.importorskip("rerun.chunk")
 
@@ -238,7 +239,7 @@ def test_python_logging_reaches_the_recording_and_is_detached(tmp_path):
     viewer = RerunViewer("save", rrd)
     logger = logging.getLogger("mosaic.test_viz")
     logger.warning("vessels too faint in frame %d", 3)
-    viewer.finish({"summary": {"frames_read": 0}})
+    viewer.finish(empty_report())
     logger.warning("after finish")
     assert not [h for h in logging.getLogger("mosaic").handlers if "Recording" in type(h).__name__]
     rows = read_rrd(rrd)["log/python/mosaic/test_viz"]["rows"]
@@ -275,7 +276,8 @@ def test_serve_hosts_the_web_viewer():
         "print(v.url)\n"
         "html = urllib.request.urlopen(v.url, timeout=10).read().decode()\n"
         "assert 'rerun' in html.lower(), html[:200]\n"
-        "v.finish({'summary': {}})\n"
+        "from tests.helpers import empty_report\n"
+        "v.finish(empty_report())\n"
     )
     result = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=60
