@@ -11,7 +11,7 @@ import pytest
 from mosaic.config import Config, with_overrides
 from mosaic.report import FAILED, REGISTERED, SKIPPED, BuildReport, read_report
 from mosaic.runner import Outputs, run_video
-from mosaic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 
 SIFT = with_overrides(Config(), features={"detector": "sift"})
