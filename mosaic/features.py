@@ -19,6 +19,7 @@ from glampoints.descriptors import upright_rootsift
 from glampoints.detector import Keypoints
 from mosaic.config import FeaturesConfig
 from mosaic.errors import ConfigError
+from mosaic.geometry import rescaled
 from mosaic.preprocess import Prepared, erode_by_disc
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,7 @@ def resized_for_detection(
 
 def to_frame_pixels(xy: np.ndarray, factor: np.ndarray) -> np.ndarray:
     """Points of a resized frame in the frame's pixels (pixel centres: (x + 0.5) * f - 0.5)."""
-    return ((xy + 0.5) * factor - 0.5).astype(np.float32)
+    return rescaled(xy, factor).astype(np.float32)
 
 
 class OpenCVDetector:

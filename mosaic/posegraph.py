@@ -22,7 +22,7 @@ import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix, diags
 from scipy.sparse.linalg import spsolve
 
-from mosaic.registration import frame_normaliser
+from mosaic.geometry import frame_normaliser
 
 log = logging.getLogger(__name__)
 

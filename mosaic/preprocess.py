@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from mosaic.config import GatingConfig, PreprocessConfig
+from mosaic.geometry import rescaled, scale_matrix
 
 log = logging.getLogger(__name__)
 
@@ -125,13 +126,6 @@ def estimate_fov_disc(source: np.ndarray) -> tuple[float, float, float]:
     dist = fov_distance(source)
     iy, ix = np.unravel_index(int(np.argmax(dist)), dist.shape)
     return float(ix - 1), float(iy - 1), float(dist[iy, ix])
-
-
-def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> np.ndarray:
-    """H_full_to_scaled of a resize: pixel centres map as x' = (x + 0.5) * s - 0.5."""
-    sy = shape_scaled[0] / shape_full[0]
-    sx = shape_scaled[1] / shape_full[1]
-    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
 DISC_ANALYSIS_SIDE_PX = 512  # the disc is estimated on a copy of at most this longer side
@@ -988,7 +982,8 @@ def find_lens_rim(image: np.ndarray, view: np.ndarray, near: Circle | None = Non
 
     kept = []  # near the last rim, on the weaker evidence
     if near is not None:
-        prior = ((near[0] + 0.5) * s - 0.5, (near[1] + 0.5) * s - 0.5, near[2] * s)
+        cx, cy = rescaled(np.asarray(near[:2], np.float64), s)
+        prior = (cx, cy, near[2] * s)
         fit = checked(prior)
         if fit.shows(RIM_FIND) and is_near(fit):
             return fit
