@@ -283,12 +283,8 @@ def refine_poses(
 # per node: the similarity (a, b, tx, ty), S = [[1 + a, -b, tx], [b, 1 + a, ty]]; the tilt (p, q)
 TILT_PARAMS = 6
 # The tilt is kept only where it lowers the squared RMS of the links' point residuals by this
-# share: freeing two parameters per frame always lowers it a little. Measured on the tuning
-# sets (78 videos, fitted with and without the tilt): 0.008-0.028 on the 37 untilted videos,
-# 0.011-0.015 on the three of them the tilt harmed (noise wandering into the tilt, amplified
-# with distance: they lost 0.25-0.56 within 10 px); 0.018-0.41 on the 41 tilted videos but two
-# (0.010, 0.013). Within 10 px over the 78: the former graph 0.934, the tilt always 0.959, the
-# tilt where it gains this much 0.970.
+# share: freeing two parameters per frame always lowers it a little (untilted tuning videos:
+# 0.008-0.028; tilted ones mostly 0.018-0.41; docs/pipeline.md).
 TILT_MIN_GAIN = 0.016
 
 
