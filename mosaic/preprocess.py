@@ -294,6 +294,7 @@ def vessel_polarity(image: np.ndarray) -> float:
 
 
 FIELD_MIN_ROWS = 16  # frames with fewer rows are not tested
+FIELD_MAX_PX = 384  # the fields are compared on at most this many (field) rows and columns
 PHASE_TAPER = 0.15  # cycles / px: sd of the Gaussian weighting the phase correlation's spectrum
 
 
@@ -307,18 +308,22 @@ def field_offset(image: np.ndarray) -> tuple[float, float]:
     frame's middle half: borders and burned-in overlays are fixed to the camera and would pull
     it to 0.
     """
-    gray = to_gray(image, False).astype(np.float32)  # luma: the offset is geometry
-    h, w = gray.shape
+    h, w = image.shape[:2]
     if h < FIELD_MIN_ROWS or w < FIELD_MIN_ROWS:
         return 0.0, 0.0
     n = h // 2
-    first, second = gray[0 : 2 * n : 2], gray[1 : 2 * n : 2]
+    # the middle half of the field rows, at most FIELD_MAX_PX a side about the centre (large
+    # frames: the same offset, a fraction of the work), cut from the frame before anything
+    fh, fw = min(n // 2, FIELD_MAX_PX), min(w // 2, FIELD_MAX_PX)
+    r0 = n // 4 + (n // 2 - fh) // 2
+    c0 = w // 4 + (w // 2 - fw) // 2
+    crop = image[2 * r0 : 2 * (r0 + fh) + 1, c0 : c0 + fw]
+    gray = to_gray(crop, False).astype(np.float32)  # luma: the offset is geometry
+    first, second = gray[0::2], gray[1::2]
     # the first field halfway between its rows: the second field's rows (frame rows 2k + 1),
     # so that a progressive frame correlates at 0 (a half-row shift is ambiguous to measure)
     first = (first[:-1] + first[1:]) / 2
-    second = second[:-1]
-    rows, cols = slice(n // 4, n // 4 + n // 2), slice(w // 4, w // 4 + w // 2)
-    first, second = first[rows, cols], second[rows, cols]
+    second = second[: len(first)]
     dx, dy = _phase_shift(first, second)
     return dx, 2.0 * dy  # a field row is two frame rows
 
