@@ -26,6 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from mosaic.camera_fixed import OverlayMask, ReflexMask, Spots
 from mosaic.compose import (
     Canvas,
     FrameSource,
@@ -37,19 +38,14 @@ from mosaic.config import Config
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features, to_frame_pixels
 from mosaic.io import UNDECODABLE, Frame, Lookahead
+from mosaic.lens_rim import Circle, LensRimMask, outside_rim_removed
 from mosaic.matching import Matches
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import (
-    Circle,
     Deinterlacer,
     FrameGate,
-    LensRimMask,
-    OverlayMask,
     Prepared,
-    ReflexMask,
-    Spots,
     first_field,
-    outside_rim_removed,
     prepare,
     resize_by,
     retina_disc,
