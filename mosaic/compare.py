@@ -39,6 +39,7 @@ import numpy as np
 from mosaic.config import Config, for_photographs
 from mosaic.errors import InputError, MosaicError
 from mosaic.features import FeatureExtractor
+from mosaic.geometry import apply_homography, apply_quadratic, quadratic_terms
 from mosaic.io import (
     IMAGE_READ_SUFFIXES,
     make_folder,
@@ -52,7 +53,6 @@ from mosaic.io import (
 from mosaic.pairs import register_pair
 from mosaic.preprocess import retina_disc
 from mosaic.refine import fixed_to_moving_map
-from mosaic.registration import apply_homography, apply_quadratic, quadratic_terms
 from mosaic.runner import Outputs, run_video, thumbnail
 
 if TYPE_CHECKING:

@@ -45,7 +45,8 @@ class PreprocessConfig:
     # recent frame
     lens_rim_mask: bool = True  # video through a handheld lens: no keypoints, tracking or
     # blending outside the lens's rim, a disc that moves about the frame (the face around it)
-    max_side_px: int = 800  # larger frames are registered downscaled to this longer side (0: off)
+    max_side_px: int = 800  # larger frames are registered (and composed: [compose] resolution)
+    # downscaled to this longer side (0: off)
     fov_diameter_px: int = 512  # `mosaic register`: a photograph showing the whole retina is
     # registered with the retina's diameter at this (the detector's training images: 460-640
     # px, median 590), instead of by max_side_px; `mosaic build`: a video whose first readable
@@ -116,6 +117,8 @@ class ComposeConfig:
     """Mosaic canvas, blending and the frames' photometric correction."""
 
     blend: str = "multiband"  # multiband | feather | average | last | best (mosaic.compose)
+    resolution: str = "working"  # working: frames are composed at the size they are registered
+    # at ([preprocess] max_side_px; 1920x1080 video: ~2x the frame rate) | full: as decoded
     max_canvas_px: int = 8000  # cap on either side of the canvas
     feather_px: int = 40  # distance from the frame edge over which feather weights ramp up
     exposure: bool = True  # per-frame gain compensation (live: running; re-render: global)
@@ -216,6 +219,7 @@ CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
         "quadratic",
     ),
     ("compose", "blend"): ("feather", "average", "last", "multiband", "best"),
+    ("compose", "resolution"): ("working", "full"),
     ("pipeline", "on_failure"): ("stop", "skip", "restart"),
     ("pipeline", "overlap"): ("auto", "on", "off"),
     ("pipeline", "strategy"): ("keyframes", "chain"),

@@ -31,6 +31,7 @@ from glampoints.synthetic import HomographyRanges as HomographyRanges
 from glampoints.synthetic import fixed_pairs as fixed_pairs
 from mosaic.config import FeaturesConfig
 from mosaic.errors import ConfigError, DetectorWeightsError
+from mosaic.geometry import rescaled
 from mosaic.preprocess import Prepared, erode_by_disc
 
 log = logging.getLogger(__name__)
@@ -89,7 +90,7 @@ def resized_for_detection(
 
 def to_frame_pixels(xy: np.ndarray, factor: np.ndarray) -> np.ndarray:
     """Points of a resized frame in the frame's pixels (pixel centres: (x + 0.5) * f - 0.5)."""
-    return ((xy + 0.5) * factor - 0.5).astype(np.float32)
+    return rescaled(xy, factor).astype(np.float32)
 
 
 class OpenCVDetector:

@@ -1,14 +1,74 @@
-"""Points and transforms: frames related through a common reference, and the corner error
-that scores an estimated transform against the truth.
+"""Points and transforms, written once: homographies and quadratics applied to points, a
+frame's corners, pixel-centre rescaling, the frame-centred normalisation that fits are
+conditioned in, Huber weights for re-weighted fits, and the corner error that scores an
+estimate against the truth.
 
-Runtime stages, the evaluation and the synthetic data share these helpers, so they live here
-and not beside the data that has the truth (the runtime stages import neither `mosaic.eval`
-nor `mosaic.synthetic`).
+Conventions: points are (N, 2) arrays of (x, y); a transform named `H_a_to_b` maps pixels of a
+into b; pixel centres are integers, so resizing by s maps x to (x + 0.5) s - 0.5. Points are
+computed in float64 here (the fits and the pose graph need it) and stored as float32 where
+they are kept per keypoint (`features.Features`). Runtime stages, the evaluation and the
+synthetic data share these helpers, so they live here (the runtime stages import neither
+`mosaic.eval` nor `mosaic.synthetic`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+
+def apply_homography(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Points (N, 2) mapped by a 3x3 homography (float64)."""
+    p = np.column_stack([xy.astype(np.float64), np.ones(len(xy))]) @ H.T
+    return p[:, :2] / p[:, 2:]
+
+
+def quadratic_terms(xy: np.ndarray) -> np.ndarray:
+    """(N, 6) monomials x^2, x y, y^2, x, y, 1 of points (N, 2)."""
+    x, y = xy[:, 0].astype(np.float64), xy[:, 1].astype(np.float64)
+    return np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+
+
+def apply_quadratic(Q: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Points (N, 2) mapped by a 2x6 quadratic transform (the retina's curvature between two
+    views, `registration`)."""
+    return quadratic_terms(xy) @ np.asarray(Q, np.float64).T
+
+
+def frame_corners(shape: tuple[int, ...]) -> np.ndarray:
+    """The four corners (x, y) of an image of `shape` (h, w): its outline, (0, 0) to (w, h)."""
+    h, w = shape[:2]
+    return np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64)
+
+
+def rescaled(xy: np.ndarray, s: float | np.ndarray) -> np.ndarray:
+    """Points of an image in the pixels of that image resized by `s` (a factor or (sx, sy)):
+    pixel centres map as (x + 0.5) s - 0.5."""
+    return (xy + 0.5) * s - 0.5
+
+
+def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> np.ndarray:
+    """H_full_to_scaled of a resize: pixel centres map as x' = (x + 0.5) * s - 0.5."""
+    sy = shape_scaled[0] / shape_full[0]
+    sx = shape_scaled[1] / shape_full[1]
+    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def frame_normaliser(shape: tuple[int, int]) -> np.ndarray:
+    """A similarity taking frame pixels to coordinates centred on the frame, unit half-diagonal
+    (keeps each model class: a similarity stays a similarity)."""
+    h, w = shape
+    s = 2.0 / np.hypot(w, h)
+    return np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
+
+
+def normalised(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Points (N, 2) in the coordinates of a normaliser `T` (a scale and a shift), float64."""
+    return xy.astype(np.float64) * T[0, 0] + T[:2, 2]
+
+
+def huber_weights(residuals: np.ndarray, k: float) -> np.ndarray:
+    """Re-weighted least squares' weights of Huber's loss: 1 within `k`, k / |r| beyond."""
+    return np.where(residuals <= k, 1.0, k / np.maximum(residuals, 1e-12))
 
 
 def relative_homographies(gt: list[np.ndarray] | np.ndarray, ref: int = 0) -> list[np.ndarray]:
@@ -29,4 +89,16 @@ def corner_error(H_est_i_to_0: np.ndarray, H_gt_i_to_0: np.ndarray, size: tuple[
     return float(np.linalg.norm(xy[0] - xy[1], axis=1).mean())
 
 
-__all__ = ["corner_error", "relative_homographies"]
+__all__ = [
+    "apply_homography",
+    "apply_quadratic",
+    "corner_error",
+    "frame_corners",
+    "frame_normaliser",
+    "huber_weights",
+    "normalised",
+    "quadratic_terms",
+    "relative_homographies",
+    "rescaled",
+    "scale_matrix",
+]

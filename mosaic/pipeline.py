@@ -26,6 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from mosaic.camera_fixed import OverlayMask, ReflexMask, Spots
 from mosaic.compose import (
     Canvas,
     FrameSource,
@@ -37,19 +38,14 @@ from mosaic.config import Config
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features, to_frame_pixels
 from mosaic.io import UNDECODABLE, Frame, Lookahead
+from mosaic.lens_rim import Circle, LensRimMask, outside_rim_removed
 from mosaic.matching import Matches
 from mosaic.photometry import VideoPhotometry
 from mosaic.preprocess import (
-    Circle,
     Deinterlacer,
     FrameGate,
-    LensRimMask,
-    OverlayMask,
     Prepared,
-    ReflexMask,
-    Spots,
     first_field,
-    outside_rim_removed,
     prepare,
     resize_by,
     retina_disc,
@@ -119,6 +115,7 @@ class FrameEvent:
     registration: Registration | None
     canvas: Canvas | None
     reference: Features | None = None  # what the frame was matched against (matches.idx_a)
+    composed_px: np.ndarray | None = None  # decoded pixels into the canvas' (None: the same)
 
 
 @dataclass(frozen=True)
@@ -131,6 +128,7 @@ class Extracted:
     features: Features | None = None
     skip: str | None = None
     H_frame_to_work: np.ndarray | None = None  # None: the working size is the frame's
+    work: np.ndarray | None = None  # the colour frame at the working size
 
 
 @dataclass(frozen=True)
@@ -309,7 +307,7 @@ class MosaicBuilder:
             self._reflex_spots[index] = self._reflexes.found
             record.reflexes = True
         if gate.skip is not None:
-            return Extracted(record, image, prepared, skip=gate.skip, H_frame_to_work=S)
+            return Extracted(record, image, prepared, skip=gate.skip, H_frame_to_work=S, work=work)
         self._turns.before_detect()
         detected = timer.run("detect", self.extractor.detect, prepared)
         self._turns.detected()
@@ -318,7 +316,7 @@ class MosaicBuilder:
             texture = timer.run("describe", lk_texture, prepared.gray, prepared.mask)
             features = dataclasses.replace(features, texture=texture)
         record.n_keypoints = len(features)
-        return Extracted(record, image, prepared, features, H_frame_to_work=S)
+        return Extracted(record, image, prepared, features, H_frame_to_work=S, work=work)
 
     def _working_size(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The frame at the video's working size and H_frame_to_work (None: unchanged): its
@@ -371,13 +369,15 @@ class MosaicBuilder:
         _note_registration(record, track)
         reason = track.reason
         if reason is None:
-            reason = self._place(segment, record, image, prepared, features, track, timer)
+            reason = self._place(
+                segment, record, image, prepared, features, track, timer, extracted.work
+            )
         if reason is not None and record.blurred is not None:  # as before it was tracked
             return self._skip(
                 record, f"{record.blurred}; not registered: {reason}", image, prepared
             )
         if reason is not None:
-            self._fail(record, image, prepared, features, timer, reason)
+            self._fail(record, image, prepared, features, timer, reason, extracted.work)
             if self.config.pipeline.on_failure == "skip":
                 track = self._start_again(extracted, timer) or track
         self.viewer.frame(
@@ -390,12 +390,13 @@ class MosaicBuilder:
                 track.registration,
                 self._segment.canvas if self._segment else None,
                 None if track.reference is None else self._in_frame(track.reference),
+                self._C,
             )
         )
         return record
 
-    # The tracker works at the working size; the canvas, the records and the viewer in the
-    # pixels of the frames as decoded.
+    # The tracker works at the working size; the records and the viewer in the pixels of the
+    # frames as decoded; the canvas in those of `[compose] resolution` (`_C`).
 
     def _to_frame(self, H_work_to_ref_work: np.ndarray) -> np.ndarray:
         """H_frame_to_ref (decoded pixels) of a homography between working-size frames."""
@@ -410,6 +411,29 @@ class MosaicBuilder:
             return features
         factor = np.array([1.0 / self._S[0, 0], 1.0 / self._S[1, 1]], np.float32)
         return dataclasses.replace(features, xy=to_frame_pixels(features.xy, factor))
+
+    @property
+    def _C(self) -> np.ndarray | None:
+        """H_frame_to_mosaic_px: decoded pixels into those the mosaic is composed in (None:
+        the same), the working size's with `[compose] resolution = "working"`."""
+        return self._S if self.config.compose.resolution == "working" else None
+
+    def _in_mosaic_px(
+        self, image: np.ndarray, work: np.ndarray | None, H_frame_to_ref: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """A decoded frame (and the same at the working size, if at hand) and its pose, in the
+        pixels the mosaic is composed in (`_C`)."""
+        C = self._C
+        if C is None:
+            return image, H_frame_to_ref
+        if work is None:
+            work, _ = self._working_size(image)
+        return work, _conjugated(H_frame_to_ref, C)
+
+    def _H_ref_to_mosaic(self, segment: _Segment) -> np.ndarray:
+        """The segment's reference frame (decoded pixels) into its mosaic's pixels."""
+        H = segment.canvas.H_ref_to_canvas
+        return H if self._C is None else H @ self._C
 
     def _frame_mask(self, prepared: Prepared, image: np.ndarray) -> np.ndarray:
         """The working-size mask at the decoded frame's size."""
@@ -439,8 +463,10 @@ class MosaicBuilder:
         features: Features,
         track: Track,
         timer: _Timer,
+        work: np.ndarray | None = None,
     ) -> str | None:
-        """Put the frame on the canvas and let the tracker take it; or say why not."""
+        """Put the frame on the canvas and let the tracker take it; or say why not. `work`:
+        the frame at the working size, if at hand."""
         assert track.H_frame_to_ref is not None
         H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
         if record.blurred is not None:  # registered, kept out of the blend; a leaf of the
@@ -454,6 +480,7 @@ class MosaicBuilder:
             )
             segment.records.append(record)
             return None
+        image, H_mosaic = self._in_mosaic_px(image, work, H_frame_to_ref)
         mask = self._frame_mask(prepared, image)
         # the video's side bands and vignetting, from the frames placed so far
         timer.run("compose", self._photometry.observe, image, mask)
@@ -461,10 +488,10 @@ class MosaicBuilder:
         quality = float("nan")
         if self._live_quality and segment.canvas.n_frames:  # against the frames already there
             canvas = segment.canvas
-            quality = timer.run("compose", frame_vs_canvas, canvas, image, H_frame_to_ref, mask)
+            quality = timer.run("compose", frame_vs_canvas, canvas, image, H_mosaic, mask)
         try:
             add = self._compositor.add
-            record.gain = timer.run("compose", add, segment.canvas, image, H_frame_to_ref, mask)
+            record.gain = timer.run("compose", add, segment.canvas, image, H_mosaic, mask)
         except CanvasLimitError as exc:
             return str(exc)
         segment.tracker.commit(record.index, features, prepared.gray.shape, track)
@@ -488,6 +515,7 @@ class MosaicBuilder:
         features: Features,
         timer: _Timer,
         reason: str,
+        work: np.ndarray | None = None,
     ) -> None:
         record.status, record.reason = FAILED, reason
         policy = self.config.pipeline.on_failure
@@ -497,7 +525,8 @@ class MosaicBuilder:
         elif policy == "restart":
             segment = self._new_segment()
             first = segment.tracker.track(record.index, features, prepared.gray.shape, timer)
-            if self._place(segment, record, image, prepared, features, first, timer) is None:
+            placed = self._place(segment, record, image, prepared, features, first, timer, work)
+            if placed is None:
                 record.status = FAILED
                 record.reason = f"{reason}; started segment {segment.index}"
 
@@ -577,7 +606,14 @@ class MosaicBuilder:
             track = fresh.tracker.track(frame.record.index, frame.features, shape, timer)
             _note_registration(frame.record, track)
             reason = self._place(
-                fresh, frame.record, frame.image, frame.prepared, frame.features, track, timer
+                fresh,
+                frame.record,
+                frame.image,
+                frame.prepared,
+                frame.features,
+                track,
+                timer,
+                frame.work,
             )
             if reason is not None:
                 frame.record.reason = reason
@@ -616,7 +652,14 @@ class MosaicBuilder:
             if track.reason is not None:
                 continue
             reason = self._place(
-                other, failed.record, failed.image, failed.prepared, failed.features, track, timer
+                other,
+                failed.record,
+                failed.image,
+                failed.prepared,
+                failed.features,
+                track,
+                timer,
+                failed.work,
             )
             if reason is not None:
                 continue
@@ -701,6 +744,8 @@ class MosaicBuilder:
                 if index in self._reflex_spots:
                     mask = self._reflex_spots[index].removed_from(prepared.mask)
                     prepared = Prepared(prepared.gray, mask)
+                if self._C is not None:  # composed at the working size
+                    image = work
                 yield index, image, self._photometry.frame_mask(self._frame_mask(prepared, image))
 
         return frames
@@ -719,6 +764,9 @@ class MosaicBuilder:
         poses = {k: dict(s.refined_poses or {}) for k, s in todo.items()}
         for later in joined.values():
             poses[0].update(later)
+        if self._C is not None:  # into the pixels the frames are composed in
+            C = self._C
+            poses = {k: {i: _conjugated(H, C) for i, H in p.items()} for k, p in poses.items()}
         owner = {r.index for s in todo.values() for r in s.records}
         owner.update(index for later in joined.values() for index in later)
         owner -= {r.index for r in self.records if r.blurred is not None}  # not blended
@@ -785,7 +833,7 @@ class MosaicBuilder:
         """The segment canvases as they are and the report so far (no refinement, the viewer
         not told): what `finish` renders, and a run's periodic checkpoint."""
         mosaics = [
-            SegmentMosaic(s.index, s.canvas.picture(), s.canvas.H_ref_to_canvas, s.canvas.n_frames)
+            SegmentMosaic(s.index, s.canvas.picture(), self._H_ref_to_mosaic(s), s.canvas.n_frames)
             for s in self._segments
             if s.canvas.n_frames
         ]
@@ -813,6 +861,12 @@ class MosaicBuilder:
             frame_shape=self._compositor.frame_shape,
             gain_solution=self._gain_solution,
         )
+
+
+def _conjugated(H_frame_to_ref: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """The same transform between frames resized by `C` (a scale matrix)."""
+    H = C @ H_frame_to_ref @ np.linalg.inv(C)
+    return H / H[2, 2]
 
 
 def _circle_in_frame(circle: Circle, H_frame_to_work: np.ndarray | None) -> Circle:

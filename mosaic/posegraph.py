@@ -22,7 +22,7 @@ import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix, diags
 from scipy.sparse.linalg import spsolve
 
-from mosaic.registration import frame_normaliser
+from mosaic.geometry import frame_normaliser
 
 log = logging.getLogger(__name__)
 
@@ -283,12 +283,8 @@ def refine_poses(
 # per node: the similarity (a, b, tx, ty), S = [[1 + a, -b, tx], [b, 1 + a, ty]]; the tilt (p, q)
 TILT_PARAMS = 6
 # The tilt is kept only where it lowers the squared RMS of the links' point residuals by this
-# share: freeing two parameters per frame always lowers it a little. Measured on the tuning
-# sets (78 videos, fitted with and without the tilt): 0.008-0.028 on the 37 untilted videos,
-# 0.011-0.015 on the three of them the tilt harmed (noise wandering into the tilt, amplified
-# with distance: they lost 0.25-0.56 within 10 px); 0.018-0.41 on the 41 tilted videos but two
-# (0.010, 0.013). Within 10 px over the 78: the former graph 0.934, the tilt always 0.959, the
-# tilt where it gains this much 0.970.
+# share: freeing two parameters per frame always lowers it a little (untilted tuning videos:
+# 0.008-0.028; tilted ones mostly 0.018-0.41; docs/pipeline.md).
 TILT_MIN_GAIN = 0.016
 
 
@@ -432,6 +428,114 @@ def _similarity_params(G: np.ndarray) -> np.ndarray:
     return np.stack([m.real - 1, m.imag, t.real, t.imag], 1)
 
 
+def _numbered(free: np.ndarray) -> np.ndarray:
+    """Each free parameter's column in the solve, -1 for those held."""
+    column = np.full(free.shape, -1)
+    column[free] = np.arange(int(free.sum()))
+    return column
+
+
+class _TiltedGraph:
+    """One video's poses as tilted-view parameters in frame-centred coordinates of unit
+    half-diagonal, and the solves of `refine_tilted_poses` over them."""
+
+    def __init__(
+        self,
+        poses: dict[int, np.ndarray],
+        fixed: int,
+        shape: tuple[int, int],
+        tilt_step_px: float,
+        tilt_prior_px: float,
+        loss_scale_px: float,
+    ):
+        self.nodes = sorted(poses)
+        self.row = {k: i for i, k in enumerate(self.nodes)}
+        self.T = frame_normaliser(shape)
+        self.s = self.T[0, 0]
+        self.loss_scale_px = loss_scale_px
+        self.tilt_prior_px = tilt_prior_px
+        T_inv = np.linalg.inv(self.T)
+        H_fixed_inv = np.linalg.inv(poses[fixed])
+        stacked = np.stack([poses[k] for k in self.nodes])
+        self.P0 = np.zeros((len(self.nodes), TILT_PARAMS))
+        self.P0[:, :4] = _similarity_params(self.T @ H_fixed_inv @ stacked @ T_inv)
+        self.P0[self.row[fixed], :4] = 0.0
+        free = np.ones((len(self.nodes), TILT_PARAMS), bool)
+        free[self.row[fixed], :4] = False  # the reference's similarity is the identity
+        self.tilted_columns = _numbered(free)
+        self.untilted_columns = _numbered(free & (np.arange(TILT_PARAMS) < 4))  # tilts held at 0
+        gaps = np.diff(np.array(self.nodes, dtype=np.float64))
+        # the tilts' residuals in the points' units (px / sd): a tilt change dp moves the
+        # corner by about dp / s px
+        self.smooth = 1.0 / (tilt_step_px * self.s * np.sqrt(gaps))
+
+    def problem(self, kept: list[Constraint]) -> _TiltedProblem:
+        s, T, row = self.s, self.T, self.row
+        sizes = [len(c.xy_a) for c in kept]
+        xy_a = np.concatenate([c.xy_a for c in kept]).astype(np.float64) * s + T[:2, 2]
+        xy_b = np.concatenate([c.xy_b for c in kept]).astype(np.float64) * s + T[:2, 2]
+        return _TiltedProblem(
+            np.repeat([row[c.a] for c in kept], sizes),
+            np.repeat([row[c.b] for c in kept], sizes),
+            xy_a,
+            xy_b,
+            np.repeat([c.weight for c in kept], sizes) / s,
+            np.repeat(np.arange(len(kept)), sizes),
+            np.arange(len(self.nodes) - 1),
+            np.arange(1, len(self.nodes)),
+            self.smooth,
+            1.0 / (self.tilt_prior_px * s),
+        )
+
+    def solve(
+        self, kept: list[Constraint], column: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, _TiltedProblem]:
+        """Parameters, residuals before and after, and the problem solved."""
+        pb = self.problem(kept)
+        free = column >= 0
+        P0 = self.P0
+
+        def full(x: np.ndarray) -> np.ndarray:
+            params = P0.copy()
+            params[free] = x
+            return params
+
+        before = _tilted_residuals(P0, pb)
+        x = _levenberg_marquardt(
+            lambda x: _tilted_residuals(full(x), pb),
+            lambda x: _tilted_jacobian(full(x), pb, column),
+            P0[free],
+            self.loss_scale_px,
+        )
+        return full(x), before, _tilted_residuals(full(x), pb), pb
+
+    def fit(
+        self, constraints: list[Constraint], column: np.ndarray, max_loop_rms_px: float
+    ) -> tuple[np.ndarray, float, float, int]:
+        """Parameters, residual RMS (px) of the points before and after, and the number of
+        constraints kept (loop closures that disagree dropped, solved again)."""
+        params, before, after, pb = self.solve(constraints, column)
+        n_points = 2 * len(pb.a)
+        kept = _consistent(constraints, after[:n_points], pb.constraint, max_loop_rms_px)
+        if len(kept) < len(constraints):
+            params, _, after, pb = self.solve(kept, column)
+        return params, _rms(before[:n_points]), _rms(after[: 2 * len(pb.a)]), len(kept)
+
+    def poses(
+        self, params: np.ndarray, poses: dict[int, np.ndarray], fixed: int
+    ) -> dict[int, np.ndarray]:
+        """H_frame_to_ref of every node from the parameters, the reference's kept as given."""
+        M = _tilted_matrices(params)
+        to_ref = np.linalg.inv(M[self.row[fixed]])
+        T, T_inv = self.T, np.linalg.inv(self.T)
+        refined = {}
+        for k in self.nodes:
+            H = poses[fixed] @ T_inv @ to_ref @ M[self.row[k]] @ T
+            refined[k] = H / H[2, 2]
+        refined[fixed] = poses[fixed]
+        return refined
+
+
 def refine_tilted_poses(
     poses: dict[int, np.ndarray],
     constraints: list[Constraint],
@@ -444,93 +548,18 @@ def refine_tilted_poses(
 ) -> Refinement:
     """Poses H_frame_to_ref = P_fixed^-1 S P (see above) consistent with the constraints; the
     tilt's effect at the frame corner changes by about `tilt_step_px` per frame and stays
-    within about `tilt_prior_px`. `fixed` is the reference (identity)."""
+    within about `tilt_prior_px`. `fixed` is the reference (identity). The tilted views are
+    kept where they lower the residual by TILT_MIN_GAIN over similarities alone."""
     constraints = [c for c in constraints if c.a in poses and c.b in poses and len(c.xy_a)]
     if not constraints or len(poses) < 2:
         return Refinement(dict(poses), 0.0, 0.0, len(constraints))
-    nodes = sorted(poses)
-    row = {k: i for i, k in enumerate(nodes)}
-    T = frame_normaliser(shape)  # frame-centred coordinates of unit half-diagonal
-    s, T_inv = T[0, 0], np.linalg.inv(T)
-    H_fixed_inv = np.linalg.inv(poses[fixed])
-    P0 = np.zeros((len(nodes), TILT_PARAMS))
-    P0[:, :4] = _similarity_params(T @ H_fixed_inv @ np.stack([poses[k] for k in nodes]) @ T_inv)
-    P0[row[fixed], :4] = 0.0
-
-    def numbered(free: np.ndarray) -> np.ndarray:
-        """Each free parameter's column in the solve, -1 for those held."""
-        column = np.full(free.shape, -1)
-        column[free] = np.arange(int(free.sum()))
-        return column
-
-    free = np.ones((len(nodes), TILT_PARAMS), bool)
-    free[row[fixed], :4] = False  # the reference's similarity is the identity
-    column = numbered(free)
-    untilted = numbered(free & (np.arange(TILT_PARAMS) < 4))  # every tilt held at zero
-    gaps = np.diff(np.array(nodes, dtype=np.float64))
-    # the tilts' residuals in the points' units (px / sd): a tilt change dp moves the corner
-    # by about dp / s px
-    smooth = 1.0 / (tilt_step_px * s * np.sqrt(gaps))
-
-    def problem(kept: list[Constraint]) -> _TiltedProblem:
-        sizes = [len(c.xy_a) for c in kept]
-        xy_a = np.concatenate([c.xy_a for c in kept]).astype(np.float64) * s + T[:2, 2]
-        xy_b = np.concatenate([c.xy_b for c in kept]).astype(np.float64) * s + T[:2, 2]
-        return _TiltedProblem(
-            np.repeat([row[c.a] for c in kept], sizes),
-            np.repeat([row[c.b] for c in kept], sizes),
-            xy_a,
-            xy_b,
-            np.repeat([c.weight for c in kept], sizes) / s,
-            np.repeat(np.arange(len(kept)), sizes),
-            np.arange(len(nodes) - 1),
-            np.arange(1, len(nodes)),
-            smooth,
-            1.0 / (tilt_prior_px * s),
-        )
-
-    def solve(
-        kept: list[Constraint], column: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, _TiltedProblem]:
-        pb = problem(kept)
-        free = column >= 0
-
-        def full(x: np.ndarray) -> np.ndarray:
-            params = P0.copy()
-            params[free] = x
-            return params
-
-        before = _tilted_residuals(P0, pb)
-        x = _levenberg_marquardt(
-            lambda x: _tilted_residuals(full(x), pb),
-            lambda x: _tilted_jacobian(full(x), pb, column),
-            P0[free],
-            loss_scale_px,
-        )
-        return full(x), before, _tilted_residuals(full(x), pb), pb
-
-    def fit(column: np.ndarray) -> tuple[np.ndarray, float, float, int]:
-        """Parameters, residual RMS (px) of the points before and after, and the number of
-        constraints kept (loop closures that disagree dropped, solved again)."""
-        params, before, after, pb = solve(constraints, column)
-        n_points = 2 * len(pb.a)
-        kept = _consistent(constraints, after[:n_points], pb.constraint, max_loop_rms_px)
-        if len(kept) < len(constraints):
-            params, _, after, pb = solve(kept, column)
-        return params, _rms(before[:n_points]), _rms(after[: 2 * len(pb.a)]), len(kept)
-
-    tilted = fit(column)
-    similar = fit(untilted)
+    graph = _TiltedGraph(poses, fixed, shape, tilt_step_px, tilt_prior_px, loss_scale_px)
+    tilted = graph.fit(constraints, graph.tilted_columns, max_loop_rms_px)
+    similar = graph.fit(constraints, graph.untilted_columns, max_loop_rms_px)
     gain = 1.0 - tilted[2] ** 2 / max(similar[2] ** 2, 1e-12)
     model = "tilted" if gain >= TILT_MIN_GAIN else "similarity"
     params, rms_before, rms_after, n_kept = tilted if model == "tilted" else similar
-    M = _tilted_matrices(params)
-    to_ref = np.linalg.inv(M[row[fixed]])
-    refined = {}
-    for k in nodes:
-        H = poses[fixed] @ T_inv @ to_ref @ M[row[k]] @ T
-        refined[k] = H / H[2, 2]
-    refined[fixed] = poses[fixed]
+    refined = graph.poses(params, poses, fixed)
     log.info(
         "pose graph (%s views, tilt gain %.3f): %d poses, %d constraints (%d loop closures "
         "dropped), residual RMS %.2f -> %.2f px",

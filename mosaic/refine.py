@@ -28,8 +28,9 @@ import cv2
 import numpy as np
 
 from mosaic.config import RegistrationConfig
+from mosaic.geometry import apply_homography, apply_quadratic, rescaled
 from mosaic.preprocess import Disc, retina_disc
-from mosaic.registration import RobustFit, apply_homography, apply_quadratic, robust_fit
+from mosaic.registration import RobustFit, robust_fit
 
 log = logging.getLogger(__name__)
 
@@ -202,10 +203,6 @@ def level_scales(start_scale: float, levels: int) -> list[float]:
     return [float(s) for s in np.geomspace(start_scale, 1.0, levels + 1)[1:]]
 
 
-def _to_level(xy: np.ndarray, s: float) -> np.ndarray:
-    return (xy + 0.5) * s - 0.5
-
-
 def _local_affine(predict: Mapping, xy: np.ndarray, eps: float = 1.0) -> np.ndarray:
     """(N, 2, 2) Jacobian of `predict` at each point, by central differences."""
     dx, dy = np.array([eps, 0.0]), np.array([0.0, eps])
@@ -245,13 +242,13 @@ def relocalise(
     J_inv[good] = np.linalg.inv(J[good])
     t = np.arange(-k, k + 1, dtype=np.float64)
     u = np.stack(np.meshgrid(t, t), -1).reshape(-1, 2)  # (m, 2) template offsets, level px
-    pm = _to_level(xy_moving, scale)
+    pm = rescaled(xy_moving, scale)
     src = pm[:, None, :] + np.einsum("nij,mj->nmi", J_inv, u)
     side = 2 * k + 1
     templates = _tiles(moving, src.reshape(n, side, side, 2))
     ts = np.arange(-k - r, k + r + 1, dtype=np.float64)
     wv = np.stack(np.meshgrid(ts, ts), -1)
-    pf = _to_level(pred, scale)
+    pf = rescaled(pred, scale)
     windows = _tiles(fixed, pf[:, None, None, :] + wv[None])
     out = np.full((n, 2), np.nan)
     peaks = np.zeros(n)

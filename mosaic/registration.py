@@ -31,6 +31,14 @@ import numpy as np
 
 from mosaic.config import RegistrationConfig
 from mosaic.features import failure_reason
+from mosaic.geometry import (
+    apply_homography,
+    apply_quadratic,
+    frame_normaliser,
+    huber_weights,
+    normalised,
+    quadratic_terms,
+)
 
 METHODS = {
     "ransac": cv2.RANSAC,
@@ -45,6 +53,9 @@ REFINE_ROUNDS = 3  # re-weighted least-squares rounds of the chosen model
 # Gauss-Newton stops after a step this small (normalised units, ~0.004 px at 660 px); the
 # next step would be ~1e-8: 2-3 steps instead of 5 (measured on the bench video)
 GN_STEP_TOL = 1e-5
+ROBUST_ROUNDS = 4  # `robust_fit`'s re-weighted rounds per model
+ROBUST_HUBER_DIVISOR = 3  # ... with Huber's k at the residual bound over this
+ROBUST_MIN_POINTS = 8  # ... stopping where fewer matches lie within the bound
 HUBER_PX = 1.0  # residual beyond which a match's weight falls as 1/residual
 # A simpler model whose extra residual (in units of the richer model's noise) stays under this
 # bound of its chi-square law (k + 5 sqrt(2k), beyond the 0.999 quantile for k = 2-6) is
@@ -339,18 +350,6 @@ def perspective_needed(evidence: float, model: str) -> bool:
     return evidence * extra >= extra + ADEQUATE_Z * np.sqrt(2 * extra)
 
 
-def frame_normaliser(shape: tuple[int, int]) -> np.ndarray:
-    """A similarity taking frame pixels to coordinates centred on the frame, unit half-diagonal
-    (keeps each model class: a similarity stays a similarity)."""
-    h, w = shape
-    s = 2.0 / np.hypot(w, h)
-    return np.array([[s, 0, -s * (w - 1) / 2], [0, s, -s * (h - 1) / 2], [0, 0, 1.0]])
-
-
-def _to_norm(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    return xy.astype(np.float64) * T[0, 0] + T[:2, 2]
-
-
 def select_model(
     a: np.ndarray,
     b: np.ndarray,
@@ -427,8 +426,8 @@ def estimate_motion(
     if consensus.H_cur_to_prev is None or not config.refine:
         return consensus
     T = frame_normaliser(shape)
-    a_all, b_all = _to_norm(T, xy_cur), _to_norm(T, xy_prev)
-    corners = _to_norm(T, np.array([[0, 0], [shape[1], 0], [shape[1], shape[0]], [0, shape[0]]]))
+    a_all, b_all = normalised(T, xy_cur), normalised(T, xy_prev)
+    corners = normalised(T, np.array([[0, 0], [shape[1], 0], [shape[1], shape[0]], [0, shape[0]]]))
     M = T @ consensus.H_cur_to_prev @ np.linalg.inv(T)
     threshold = config.reproj_threshold_px * T[0, 0]
     huber = HUBER_PX * T[0, 0]
@@ -450,7 +449,7 @@ def estimate_motion(
             M = fit.M
             err = transfer_errors(M, a_all, b_all)
             inliers = err < threshold
-            w_all = np.where(err <= huber, 1.0, huber / np.maximum(err, 1e-12))
+            w_all = huber_weights(err, huber)
     except np.linalg.LinAlgError:
         fit = None
     if fit is None:
@@ -499,23 +498,6 @@ def inlier_coverage(xy: np.ndarray, shape: tuple[int, int]) -> float:
 # and the same with b for y'; 12 parameters, the curvature of the retina seen from two poses.
 
 N_PARAMS_QUADRATIC = 12
-
-
-def quadratic_terms(xy: np.ndarray) -> np.ndarray:
-    """(N, 6) monomials x^2, x y, y^2, x, y, 1 of points (N, 2)."""
-    x, y = xy[:, 0].astype(np.float64), xy[:, 1].astype(np.float64)
-    return np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
-
-
-def apply_quadratic(Q: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Points (N, 2) mapped by a 2x6 quadratic transform."""
-    return quadratic_terms(xy) @ np.asarray(Q, np.float64).T
-
-
-def apply_homography(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Points (N, 2) mapped by a 3x3 homography."""
-    p = np.column_stack([xy.astype(np.float64), np.ones(len(xy))]) @ H.T
-    return p[:, :2] / p[:, 2:]
 
 
 def _fit_quadratic_norm(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
@@ -569,7 +551,7 @@ def robust_fit(
     `threshold_px`) bounds the homography's residuals: on a curved retina they reach ~10 px
     at 2912 px however precise the matches, so a tight bound would keep only part of them."""
     T = frame_normaliser(shape)
-    a_all, b_all = _to_norm(T, xy_cur), _to_norm(T, xy_prev)
+    a_all, b_all = normalised(T, xy_cur), normalised(T, xy_prev)
     w0 = np.ones(len(a_all)) if weights is None else np.asarray(weights, np.float64)
     M = T @ H0 @ np.linalg.inv(T)
     M = M / M[2, 2]
@@ -577,11 +559,11 @@ def robust_fit(
     def rounds(predict, fit, thr):
         err = np.linalg.norm(predict(a_all) - b_all, axis=1)
         state, inl = None, err < thr
-        for _ in range(4):
+        for _ in range(ROBUST_ROUNDS):
             inl = err < thr
-            if inl.sum() < 8:
+            if inl.sum() < ROBUST_MIN_POINTS:
                 break
-            w = w0 * np.where(err <= thr / 3, 1.0, thr / 3 / np.maximum(err, 1e-12))
+            w = w0 * huber_weights(err, thr / ROBUST_HUBER_DIVISOR)
             state, _ = fit(a_all[inl], b_all[inl], w[inl])
             err = np.linalg.norm(predict(a_all, state) - b_all, axis=1)
         inl = err < thr

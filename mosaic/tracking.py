@@ -29,6 +29,7 @@ import numpy as np
 
 from mosaic.config import Config
 from mosaic.features import Features
+from mosaic.geometry import apply_homography, frame_corners
 from mosaic.matching import Matches, match_descriptors
 from mosaic.posegraph import Constraint, Refinement, refine_poses, refine_tilted_poses
 from mosaic.refine import flow_points, texture_agreement, track_points
@@ -201,7 +202,7 @@ def _tracked(
     xy_cur = registration.points[0]
     if len(xy_cur) > TRACK_MAX_POINTS:  # evenly through the list: spread over the frame
         xy_cur = xy_cur[np.linspace(0, len(xy_cur) - 1, TRACK_MAX_POINTS).round().astype(int)]
-    pred = project(registration.H_cur_to_prev, xy_cur.astype(np.float64))
+    pred = apply_homography(registration.H_cur_to_prev, xy_cur.astype(np.float64))
     found, ok = track_points(
         features.texture, reference.texture, xy_cur, pred, config.registration.track_window_px
     )
@@ -213,7 +214,7 @@ def _tracked(
 
     def relax(evidence: float, H_pure: np.ndarray, fitted: str) -> bool:
         nonlocal relaxed
-        baseline = float(np.linalg.norm(project(H_pure, centre) - centre) / np.hypot(w, h))
+        baseline = float(np.linalg.norm(apply_homography(H_pure, centre) - centre) / np.hypot(w, h))
         if baseline >= perspective.MIN_BASELINE:
             perspective.add(evidence)
         relaxed = perspective.needed(evidence, fitted)
@@ -279,18 +280,6 @@ class ChainTracker:
         return {}
 
 
-def corners(shape: tuple[int, int]) -> np.ndarray:
-    """The four corners (x, y) of an image of `shape` (h, w)."""
-    h, w = shape
-    return np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64)
-
-
-def project(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Apply a homography to (N, 2) points."""
-    p = np.hstack([xy, np.ones((len(xy), 1))]) @ H.T
-    return p[:, :2] / p[:, 2:]
-
-
 def overlap_fraction(poly_a: np.ndarray, poly_b: np.ndarray) -> float:
     """Area of the intersection of two convex quadrilaterals over the area of `poly_a`."""
     area_a = cv2.contourArea(poly_a.astype(np.float32))
@@ -313,7 +302,7 @@ class Keyframe:
     peak_coverage: float = 0.0  # largest inlier coverage a frame registered to it has had
 
     def footprint(self) -> np.ndarray:
-        return project(self.H_to_ref, corners(self.shape))
+        return apply_homography(self.H_to_ref, frame_corners(self.shape))
 
 
 @dataclass
@@ -379,7 +368,7 @@ class KeyframeTracker:
     # -- proposing a placement -------------------------------------------------------------
     def _overlaps(self, H_frame_to_ref: np.ndarray, shape: tuple[int, int]) -> dict[int, float]:
         """Fraction of the frame (placed by `H_frame_to_ref`) inside each live keyframe."""
-        footprint = project(H_frame_to_ref, corners(shape))
+        footprint = apply_homography(H_frame_to_ref, frame_corners(shape))
         return {
             kf.id: overlap_fraction(footprint, kf.footprint())
             for kf in self._keyframes.values()
@@ -504,7 +493,7 @@ class KeyframeTracker:
         if len(xy_prev) > FLOW_MAX_POINTS:  # evenly through the list: spread over the frame
             xy_prev = xy_prev[np.linspace(0, len(xy_prev) - 1, FLOW_MAX_POINTS).round().astype(int)]
         H_cur_to_prev = np.eye(3) if self._step is None else self._step  # constant velocity
-        pred = project(np.linalg.inv(H_cur_to_prev), xy_prev.astype(np.float64))
+        pred = apply_homography(np.linalg.inv(H_cur_to_prev), xy_prev.astype(np.float64))
         window = registration_config.track_window_px or 31
         found, ok = timer.run(
             "estimate", flow_points, prev.texture, features.texture, xy_prev, pred, window
@@ -550,8 +539,10 @@ class KeyframeTracker:
 
     def _agree(self, H_a: np.ndarray, H_b: np.ndarray, shape: tuple[int, int]) -> bool:
         """Do two placements of a frame lie within LINK_AGREEMENT_PX (mean over its corners)?"""
-        frame = corners(shape)
-        gap = np.linalg.norm(project(H_a, frame) - project(H_b, frame), axis=1).mean()
+        frame = frame_corners(shape)
+        gap = np.linalg.norm(
+            apply_homography(H_a, frame) - apply_homography(H_b, frame), axis=1
+        ).mean()
         return bool(gap <= self.LINK_AGREEMENT_PX)
 
     def _links(
@@ -713,7 +704,7 @@ class KeyframeTracker:
         sd = registration.corner_sd_px
         weight = 1.0 / max(sd if np.isfinite(sd) else self.MIN_SD_PX, self.MIN_SD_PX)
         self._constraints.append(
-            Constraint(a, b, xy_a, project(registration.H_cur_to_prev, xy_a), loop, weight)
+            Constraint(a, b, xy_a, apply_homography(registration.H_cur_to_prev, xy_a), loop, weight)
         )
 
     def _close_loops(self, new: Keyframe, registered_to: int, shape: tuple[int, int]) -> None:

@@ -402,6 +402,7 @@ class RerunViewer:
         self._snapshot_of: weakref.ref[Canvas] | None = None
         self._snapshot_n_frames = 0
         self._H_ref_to_snapshot = np.eye(3)  # reference frame -> rerun coords of the snapshot
+        self._composed_px: np.ndarray | None = None  # decoded pixels into the canvas'
         self._log_static(config, video_info)
         self._handler = _RecordingLogHandler(self._rec, "log/python")
         self._logger = logging.getLogger(logger_name)
@@ -485,6 +486,7 @@ class RerunViewer:
             self._log_frame(event)
         else:
             rec.log("video/frame", rr.Clear(recursive=True))
+        self._composed_px = event.composed_px
         if event.canvas is not None and event.canvas.n_frames > 0:
             self._last_canvas = event.canvas
             new_segment = self._snapshot_of is None or self._snapshot_of() is not event.canvas
@@ -544,7 +546,10 @@ class RerunViewer:
             "mosaic/canvas", self._rr.EncodedImage(contents=jpeg, media_type="image/jpeg")
         )
         # canvas pixel c (OpenCV) is drawn at (c + 0.5) * s in the snapshot
-        self._H_ref_to_snapshot = _scale_translate(sx, sy, 0.5, 0.5) @ canvas.H_ref_to_canvas
+        H_ref_to_canvas = canvas.H_ref_to_canvas
+        if self._composed_px is not None:  # the canvas composed at another size
+            H_ref_to_canvas = H_ref_to_canvas @ self._composed_px
+        self._H_ref_to_snapshot = _scale_translate(sx, sy, 0.5, 0.5) @ H_ref_to_canvas
         self._snapshot_of = weakref.ref(canvas)
         self._snapshot_n_frames = canvas.n_frames
 

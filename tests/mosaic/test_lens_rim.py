@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from mosaic.config import Config, PreprocessConfig, with_overrides
+from mosaic.lens_rim import LensRimMask, find_lens_rim
 from mosaic.pipeline import MosaicBuilder
-from mosaic.preprocess import LensRimMask, find_lens_rim, prepare
+from mosaic.preprocess import prepare
 from mosaic.synthetic.synth import SynthParams, lens_rim_truth, render_frames
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import errors_to_first

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from mosaic.config import Config, with_overrides
+from mosaic.geometry import scale_matrix
 from mosaic.io import Frame, Lookahead, open_frames
 from mosaic.pipeline import MosaicBuilder, MosaicResult
 from mosaic.scheduling import OverlapTrial, Turns
@@ -511,30 +512,51 @@ def _upscaled(folder: Path, gt: list[np.ndarray], out: Path, k: int = 2):
     return out, [H @ H_big_to_small for H in gt]
 
 
+def _shows_frame(mosaic: np.ndarray, frame: np.ndarray, H_frame_to_mosaic: np.ndarray) -> float:
+    """Median grey-level difference between the mosaic and a frame put where H_frame_to_mosaic
+    says (the frame first brought to about the mosaic's scale), away from the frame's edge."""
+    s = float(np.sqrt(abs(np.linalg.det(H_frame_to_mosaic[:2, :2]))))
+    small = cv2.resize(frame, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 0.9 else frame
+    S = scale_matrix(frame.shape, small.shape)
+    H = H_frame_to_mosaic @ np.linalg.inv(S)
+    size = (mosaic.shape[1], mosaic.shape[0])
+    warped = cv2.warpPerspective(small, H, size)
+    inside = cv2.warpPerspective(np.full(small.shape[:2], 255, np.uint8), H, size)
+    inside = cv2.erode(inside, np.ones((31, 31), np.uint8)) > 0
+    return float(np.median(np.abs(mosaic.astype(int) - warped.astype(int))[inside]))
+
+
 @pytest.mark.slow
-def test_large_frames_register_at_the_working_size_and_compose_at_full_size(video, tmp_path):
-    """A 2x camera registered at half size gives what the 1x camera gives, in its own pixels."""
+def test_large_frames_register_and_compose_at_the_working_size(video, tmp_path):
+    """A 2x camera registered at half size gives what the 1x camera gives, in its own pixels;
+    its mosaic is composed at the working size (`[compose] resolution = "working"`), or from
+    the frames as decoded (`"full"`), and the report maps the frames' pixels into either."""
     folder, gt = video
     big, gt_big = _upscaled(folder, gt, tmp_path / "big")
     small_result = _run(folder, _config())
-    result = _run(big, with_overrides(_config(), preprocess={"max_side_px": 400}))
+    half = with_overrides(_config(), preprocess={"max_side_px": 400})
+    result = _run(big, half)
     summary = result.report.to_dict()["summary"]
     assert summary["working_scale"] == 0.5 and summary["registered"] == 24
     frames = result.report.to_dict()["frames"]
     errors = _errors_to_first(frames, gt_big, (2 * SIZE[0], 2 * SIZE[1]))
     assert np.mean(errors) < 6.0 and np.max(errors) < 12.0, errors  # the 1x bounds, doubled
-    # the mosaic is composed from the full-size frames: twice the 1x mosaic, and its pixels
-    # are the frames'
-    mosaic = result.main.image
-    np.testing.assert_allclose(
-        mosaic.shape[:2], 2 * np.array(small_result.main.image.shape[:2]), atol=8
-    )
     frame = cv2.imread(str(sorted(big.glob("*.png"))[12]))
-    H = np.array(frames[12]["H_to_canvas"])
-    warped = cv2.warpPerspective(frame, H, (mosaic.shape[1], mosaic.shape[0]))
-    inside = cv2.warpPerspective(np.full(frame.shape[:2], 255, np.uint8), H, warped.shape[1::-1])
-    inside = cv2.erode(inside, np.ones((31, 31), np.uint8)) > 0
-    assert np.median(np.abs(mosaic.astype(int) - warped.astype(int))[inside]) < 6
+    small_mosaic = np.array(small_result.main.image.shape[:2])
+    # composed at the working size: the 1x mosaic's size, the frames' pixels where the report
+    # puts them
+    mosaic = result.main.image
+    np.testing.assert_allclose(mosaic.shape[:2], small_mosaic, atol=4)
+    assert _shows_frame(mosaic, frame, np.array(frames[12]["H_to_canvas"])) < 6
+    # composed from the frames as decoded: twice the 1x mosaic, the same poses
+    full_size = _run(big, with_overrides(half, compose={"resolution": "full"}))
+    mosaic = full_size.main.image
+    np.testing.assert_allclose(mosaic.shape[:2], 2 * small_mosaic, atol=8)
+    full_frames = full_size.report.to_dict()["frames"]
+    assert _shows_frame(mosaic, frame, np.array(full_frames[12]["H_to_canvas"])) < 6
+    np.testing.assert_allclose(
+        _errors_to_first(full_frames, gt_big, (2 * SIZE[0], 2 * SIZE[1])), errors, atol=1e-6
+    )
     # with the working size off, the same frames register at full size (slower, same answer)
     full = _run(big, with_overrides(_config(), preprocess={"max_side_px": 0}))
     assert full.report.to_dict()["summary"]["working_scale"] == 1.0

@@ -1,5 +1,6 @@
 import numpy as np
 
+from mosaic.geometry import apply_homography, frame_corners
 from mosaic.posegraph import (
     Constraint,
     _tilted_point_derivatives,
@@ -7,7 +8,6 @@ from mosaic.posegraph import (
     refine_poses,
     refine_tilted_poses,
 )
-from mosaic.tracking import corners, project
 from tests.helpers import similarity
 
 SHAPE = (300, 400)
@@ -15,7 +15,11 @@ SHAPE = (300, 400)
 
 def _corner_error(H_a, H_b):
     return float(
-        np.linalg.norm(project(H_a, corners(SHAPE)) - project(H_b, corners(SHAPE)), axis=1).mean()
+        np.linalg.norm(
+            apply_homography(H_a, frame_corners(SHAPE))
+            - apply_homography(H_b, frame_corners(SHAPE)),
+            axis=1,
+        ).mean()
     )
 
 
@@ -39,7 +43,8 @@ def test_pose_graph_recovers_poses_from_noisy_constraints():
         -1, 2
     )
     for a, b in pairs:
-        xy_b = project(np.linalg.inv(truth[b]) @ truth[a], grid) + rng.normal(0, 0.5, grid.shape)
+        xy_b = apply_homography(np.linalg.inv(truth[b]) @ truth[a], grid)
+        xy_b = xy_b + rng.normal(0, 0.5, grid.shape)
         constraints.append(Constraint(a, b, grid, xy_b))
     # Initial poses drift: each keyframe is off by an error that grows along the chain.
     initial = {k: H.copy() for k, H in truth.items()}
@@ -63,12 +68,12 @@ def test_a_wrong_loop_closure_is_dropped():
         -1, 2
     )
     constraints = [
-        Constraint(a, a + 1, grid, project(np.linalg.inv(truth[a + 1]) @ truth[a], grid))
+        Constraint(a, a + 1, grid, apply_homography(np.linalg.inv(truth[a + 1]) @ truth[a], grid))
         for a in range(3)
     ]
     # A bogus closure claiming keyframe 3 sits 60 px from where it is.
     constraints.append(
-        Constraint(3, 0, grid, project(truth[3], grid) + np.array([60.0, 0.0]), loop=True)
+        Constraint(3, 0, grid, apply_homography(truth[3], grid) + np.array([60.0, 0.0]), loop=True)
     )
     result = refine_poses(truth, constraints, fixed=0)
     assert result.dropped_loops == 1
@@ -99,7 +104,7 @@ def _one_sided_links(views, pairs, rng):
     links = []
     for a, b in pairs:
         xy_a = np.stack([rng.uniform(0, 0.5 * w, 24), rng.uniform(0, h, 24)], 1)
-        xy_b = project(np.linalg.inv(views[b]) @ views[a], xy_a)
+        xy_b = apply_homography(np.linalg.inv(views[b]) @ views[a], xy_a)
         seen = (xy_b[:, 0] >= 0) & (xy_b[:, 0] < w) & (xy_b[:, 1] >= 0) & (xy_b[:, 1] < h)
         if seen.sum() >= 6:
             noise = rng.normal(0, 0.5, (int(seen.sum()), 2))
@@ -145,7 +150,7 @@ def test_tilted_pose_graph_removes_the_drift_of_similarity_links_between_tilted_
         initial[k] = initial[k - 1] @ fits[(k, k - 1)]
     grid = np.stack(np.meshgrid(np.linspace(0, 400, 3), np.linspace(0, 300, 3)), -1)
     grid = grid.reshape(-1, 2)
-    grid_links = [Constraint(a, b, grid, project(H, grid)) for (a, b), H in fits.items()]
+    grid_links = [Constraint(a, b, grid, apply_homography(H, grid)) for (a, b), H in fits.items()]
     similar = _errors_to_truth(refine_poses(initial, grid_links, fixed=0).poses, views)
     tilted = refine_tilted_poses(initial, links, 0, SHAPE, tilt_step_px=0.4)
     errors = _errors_to_truth(tilted.poses, views)

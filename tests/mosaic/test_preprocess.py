@@ -3,11 +3,10 @@ import numpy as np
 import pytest
 
 from glampoints.synthetic import frame_preprocess
+from mosaic.camera_fixed import OverlayMask, ReflexMask
 from mosaic.config import PreprocessConfig
 from mosaic.preprocess import (
     Deinterlacer,
-    OverlayMask,
-    ReflexMask,
     erode_by_disc,
     field_of_view_mask,
     field_offset,

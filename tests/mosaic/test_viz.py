@@ -212,6 +212,31 @@ def test_canvas_is_throttled_and_outline_on_it(run):
     assert (last[:, 1] <= hm + 1e-3).all()
 
 
+def test_outline_on_a_canvas_composed_at_the_working_size(tmp_path):
+    """Frames larger than the working size are composed there: the live canvas is at that
+    scale, and the frame's outline (decoded pixels) is drawn on it where the frame lies."""
+    video = tmp_path / "clip.mp4"
+    args = ["synth", str(SAMPLE_IMAGE), "-o", str(video), "--frames", "3"]
+    assert runner.invoke(app, [*args, "--size", f"{2 * W}x{2 * H}", "--clean"]).exit_code == 0
+    config = tmp_path / "half.toml"
+    config.write_text(f"[preprocess]\nmax_side_px = {W}\n")  # half the frame
+    rrd = tmp_path / "run.rrd"
+    result = runner.invoke(
+        app,
+        [
+            "build", str(video), "-o", str(tmp_path / "m.png"), "--config", str(config),
+            "--detector", "sift", "--rerun", "save", "--rerun-target", str(rrd),
+            "--rerun-canvas-every", "1",
+        ],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    rec = read_rrd(rrd)
+    first = decode_jpeg(last_value(rec, "mosaic/canvas", "EncodedImage:blob", 0))
+    assert first.shape[:2] == (H, W)  # one frame on the canvas, at half size
+    outline0 = np.array(last_value(rec, "mosaic/outline", "LineStrips2D:strips", 0)[0])
+    np.testing.assert_allclose(outline0, [[0, 0], [W, 0], [W, H], [0, H], [0, 0]], atol=0.5)
+
+
 def test_status_log_has_one_entry_per_frame(run):
     rows = run["rec"]["log/status"]["rows"]
     assert [f for f, _ in rows] == list(range(N_FRAMES))
