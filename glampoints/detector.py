@@ -369,8 +369,14 @@ def save_weights(state_dict: dict[str, torch.Tensor], path: str | Path, meta: di
         "state_dict": {k: v.detach().cpu().contiguous().clone() for k, v in state_dict.items()},
         "meta": dict(meta or {}),
     }
+    atomic_torch_save(payload, path)
+
+
+def atomic_torch_save(obj: Any, path: Path) -> None:
+    """`torch.save` through a temporary file beside `path`, then a rename: a kill never leaves
+    half a file (weights, training checkpoints)."""
     tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
+    torch.save(obj, tmp)
     tmp.replace(path)
 
 

@@ -51,7 +51,7 @@ import torch
 from tqdm import tqdm
 
 from glampoints.descriptors import upright_rootsift
-from glampoints.detector import WeightsError, load_weights, save_weights
+from glampoints.detector import WeightsError, atomic_torch_save, load_weights, save_weights
 from glampoints.metrics import (
     matching_score,
     registration_class,
@@ -343,12 +343,6 @@ def evaluate_glampoints(net: UNet, pairs: Sequence[Pair], cfg: TrainConfig) -> d
 # Checkpoints
 
 
-def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    tmp.replace(path)
-
-
 def _atomic_write_text(path: Path, text: str) -> None:
     """Write via a temporary file beside `path`, then rename: a kill never leaves half a file."""
     tmp = path.with_name(f".{path.name}.tmp")
@@ -625,7 +619,7 @@ class _Training:
     def save(self, path: Path) -> None:
         if path == self.last_path:
             self.saved_step = self.step
-        _atomic_save(
+        atomic_torch_save(
             {
                 "model": self.net.state_dict(),
                 "optimizer": self.opt.state_dict(),
