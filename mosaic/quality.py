@@ -25,7 +25,7 @@ import numpy as np
 
 from mosaic.compose import Canvas
 from mosaic.config import ComposeConfig, PreprocessConfig
-from mosaic.geometry import corner_error, relative_homographies
+from mosaic.geometry import apply_homography, corner_error, relative_homographies
 from mosaic.preprocess import prepare, to_working_size
 
 log = logging.getLogger(__name__)
@@ -164,18 +164,13 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
 
 
 def _aperture_points(size: tuple[int, int], step_px: float = 10.0) -> np.ndarray:
-    """Homogeneous (n, 3) grid of frame points inside the ellipse inscribed in a (w, h) frame
-    (shrunk to 0.9: where fundus frames show retina)."""
+    """(n, 2) grid of frame points inside the ellipse inscribed in a (w, h) frame (shrunk to
+    0.9: where fundus frames show retina)."""
     w, h = size
     xs, ys = np.meshgrid(np.arange(0.0, w, step_px), np.arange(0.0, h, step_px))
     cx, cy = (w - 1) / 2, (h - 1) / 2
     inside = ((xs - cx) / (0.9 * w / 2)) ** 2 + ((ys - cy) / (0.9 * h / 2)) ** 2 <= 1.0
-    return np.stack([xs[inside], ys[inside], np.ones(int(inside.sum()))], axis=1)
-
-
-def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    mapped = points @ H.T
-    return mapped[..., :2] / mapped[..., 2:]
+    return np.stack([xs[inside], ys[inside]], axis=1)
 
 
 def _misalignment(
@@ -186,16 +181,16 @@ def _misalignment(
     median: what most of the mosaic under the frame shows)."""
     w, h = size
     cx, cy = (w - 1) / 2, (h - 1) / 2
-    in_ref = _apply(est[i], points)  # where the frame's points are drawn
-    truth_i = _apply(true[i], points)  # what they show
+    in_ref = apply_homography(est[i], points)  # where the frame's points are drawn
+    truth_i = apply_homography(true[i], points)  # what they show
     distances = []
     for j in range(i):
-        q = _apply(np.linalg.inv(est[j]), np.c_[in_ref, np.ones(len(in_ref))])  # in frame j
+        q = apply_homography(np.linalg.inv(est[j]), in_ref)  # in frame j
         inside = ((q[:, 0] - cx) / (0.9 * w / 2)) ** 2 + ((q[:, 1] - cy) / (0.9 * h / 2)) ** 2
         inside = inside <= 1.0
         if inside.any():
-            q_h = np.c_[q[inside], np.ones(int(inside.sum()))]
-            distances.append(np.linalg.norm(truth_i[inside] - _apply(true[j], q_h), axis=1))
+            mapped = apply_homography(true[j], q[inside])
+            distances.append(np.linalg.norm(truth_i[inside] - mapped, axis=1))
     return float(np.median(np.concatenate(distances))) if distances else math.nan
 
 
