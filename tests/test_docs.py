@@ -40,8 +40,8 @@ def doc_files() -> list[Path]:
 
 def command_tree() -> Tree:
     """tool -> command -> long flags (`--x`, and `--no-x` of boolean switches), from typer."""
-    from glampoints.cli import app as glampoints_app
     from mosaic.cli import app as mosaic_app
+    from mosaic.glampoints_cli import app as glampoints_app
 
     tree: Tree = {}
     for tool, app in (("mosaic", mosaic_app), ("glampoints", glampoints_app)):

@@ -1,10 +1,11 @@
 """The packages keep their layers (issue 42), read from the source's import statements (ast),
 those inside functions included:
 
-- the runtime modules of `mosaic` (every module of `mosaic/` itself but the CLI, the edge that
-  offers every command) import neither `mosaic.eval` nor `mosaic.synthetic`;
+- the runtime modules of `mosaic` (every module of `mosaic/` itself but the two command lines,
+  the edges that offer every command) import neither `mosaic.eval` nor `mosaic.synthetic`;
 - at most two `mosaic` modules import `glampoints`: the detector adapter (`mosaic.features`)
-  and the command line.
+  and the `glampoints` command line (`mosaic.glampoints_cli`);
+- no `glampoints` module imports `mosaic`: the model package knows no videos.
 
 Each check is a pure function of the sources and is shown to catch a fake import.
 """
@@ -16,11 +17,11 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 MOSAIC = REPO / "mosaic"
-# the edge that may import every layer: the command line offers evaluate, bench and synth
-EDGES = {"cli.py"}
+# the edges that may import every layer: the command lines offer evaluate, bench and synth
+EDGES = {"cli.py", "glampoints_cli.py"}
 AROUND_RUNTIME = ("mosaic.eval", "mosaic.synthetic")
-# the only mosaic modules that may import glampoints: the adapter, and the command line
-GLAMPOINTS_DOORS = {"mosaic.features", "mosaic.cli"}
+# the only mosaic modules that may import glampoints: the adapter, and the glampoints command line
+GLAMPOINTS_DOORS = {"mosaic.features", "mosaic.glampoints_cli"}
 
 
 def module_name(path: Path) -> str:
@@ -108,8 +109,16 @@ def test_at_most_two_mosaic_modules_import_glampoints():
     sources = package_sources("mosaic")
     assert {"mosaic.features", "mosaic.eval.evaluate", "mosaic.synthetic.synth"} <= set(sources)
     assert len(GLAMPOINTS_DOORS) <= 2
-    assert "mosaic.features" in importers_of(sources, "glampoints")
-    assert importers_of(sources, "glampoints") <= GLAMPOINTS_DOORS
+    assert importers_of(sources, "glampoints") == GLAMPOINTS_DOORS
     # the check catches a module that imports glampoints to catch its error
     sources["mosaic.batch"] += "\ndef f():\n    from glampoints.detector import WeightsError\n"
     assert importers_of(sources, "glampoints") - GLAMPOINTS_DOORS == {"mosaic.batch"}
+
+
+def test_no_glampoints_module_imports_mosaic():
+    sources = package_sources("glampoints")
+    assert {"glampoints.detector", "glampoints.training", "glampoints"} <= set(sources)
+    assert importers_of(sources, "mosaic") == set()
+    # the check catches a lazy import of the application's I/O
+    sources["glampoints.training"] += "\ndef f():\n    from mosaic.io import same_file\n"
+    assert importers_of(sources, "mosaic") == {"glampoints.training"}

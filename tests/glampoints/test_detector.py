@@ -10,7 +10,6 @@ from torch import nn
 from typer.testing import CliRunner
 
 from glampoints import detector as detector_module
-from glampoints.cli import app
 from glampoints.detector import (
     DEFAULT_WEIGHTS,
     GlamPoints,
@@ -24,6 +23,7 @@ from glampoints.detector import (
 )
 from glampoints.nms import nms, nms_numpy, refine_subpixel
 from glampoints.unet import UNet
+from mosaic.glampoints_cli import app
 from tests.glampoints.conftest import randomise_batchnorm, vessel_image
 
 

@@ -12,7 +12,6 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from glampoints.cli import app
 from glampoints.detector import GlamPoints
 from glampoints.nms import nms
 from glampoints.synthetic import fixed_pairs, frame_preprocess
@@ -33,6 +32,7 @@ from glampoints.training import (
     validation_pairs,
 )
 from glampoints.unet import UNet
+from mosaic.glampoints_cli import app
 from tests.glampoints.conftest import vessel_image
 
 

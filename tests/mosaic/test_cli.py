@@ -413,7 +413,7 @@ def test_version_and_the_help_of_every_verbose_option():
     every command's -v/--verbose says what it does."""
     from importlib.metadata import version
 
-    from glampoints.cli import app as glampoints_app
+    from mosaic.glampoints_cli import app as glampoints_app
 
     for tool, tool_app in (("mosaic", app), ("glampoints", glampoints_app)):
         result = CliRunner().invoke(tool_app, ["--version"])

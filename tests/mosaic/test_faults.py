@@ -30,11 +30,11 @@ import torch
 from typer.testing import CliRunner
 
 import glampoints.training as training
-from glampoints.cli import app as glampoints_app
 from glampoints.training import TrainConfig, load_checkpoint, train
 from mosaic.cli import app
 from mosaic.config import Config, config_from_dict, value_range, with_overrides
 from mosaic.errors import ConfigError
+from mosaic.glampoints_cli import app as glampoints_app
 from mosaic.io import open_frames
 from mosaic.runner import Outputs, run_video
 from mosaic.synthetic.synth import SynthParams, write_synthetic_video

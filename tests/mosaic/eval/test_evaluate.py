@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from glampoints.cli import app as glampoints_app
 from glampoints.metrics import point_errors
 from mosaic.cli import app as mosaic_app
 from mosaic.config import Config, with_overrides
@@ -47,6 +46,7 @@ from mosaic.eval.evaluate import (
 )
 from mosaic.features import FeatureExtractor
 from mosaic.geometry import relative_homographies
+from mosaic.glampoints_cli import app as glampoints_app
 from mosaic.io import sample_image_path
 from mosaic.synthetic.curved import write_fire_folder
 from mosaic.synthetic.synth import (

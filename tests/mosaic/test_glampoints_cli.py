@@ -10,8 +10,8 @@ import torch
 from typer.testing import CliRunner
 
 import glampoints.detector
-from glampoints.cli import app
 from glampoints.detector import DEFAULT_WEIGHTS, GlamPoints, load_weights
+from mosaic.glampoints_cli import app
 
 runner = CliRunner()
 

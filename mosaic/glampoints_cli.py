@@ -5,6 +5,12 @@ line on stderr and exit 2; Ctrl-C exits 130; an unexpected error prints one line
 (the traceback with -v where the command has it, else in the log at INFO).
 """
 
+# (The docstring above is `glampoints --help`.) The `glampoints` console script lives in mosaic:
+# detect, bench, export and evaluate use the application (its I/O, field-of-view mask,
+# precision rule and evaluation), and the model package `glampoints` imports no mosaic. Beside
+# `features`, this edge is the one mosaic module that imports glampoints. The application's
+# modules are imported in the commands that need them, so that `train` starts without them.
+
 from __future__ import annotations
 
 import sys
@@ -90,8 +96,7 @@ def detect(
     ] = True,
 ) -> None:
     """Detect GLAMpoints keypoints in one image."""
-    # mosaic's I/O (atomic writes, output checks) and field-of-view mask, imported here: the
-    # CLI is where the packages meet
+    # mosaic's I/O (atomic writes, output checks) and field-of-view mask
     from mosaic.config import PreprocessConfig
     from mosaic.errors import MosaicError
     from mosaic.io import IMAGE_WRITE_SUFFIXES, check_output_path, read_image, write_image
@@ -289,8 +294,7 @@ def evaluate(
     verbose: Annotated[bool, typer.Option("-v", "--verbose")] = False,
 ) -> None:
     """Compare detectors on image pairs with the paper's metrics and the FIRE protocol."""
-    # The CLI is the edge where the packages meet: the evaluation runs mosaic's pipeline stages,
-    # and glampoints never imports mosaic at module level, so it is imported here, lazily.
+    # the evaluation runs mosaic's pipeline stages
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     from mosaic.config import load_config, with_overrides
