@@ -4,11 +4,12 @@ is accounted for in the report; at the end the poses are refined and the mosaic 
 each frame's quality score against it).
 
 `MosaicBuilder.process` takes one decoded frame at a time (frames are streamed, never stored);
-it is `extract` (preprocess → describe: needs no other frame) then `register` (track → compose,
-in frame order). `stream` runs them over a video with, when `[pipeline] overlap` is on (or
-`auto` measured it faster: `scheduling.OverlapTrial`), the extraction of the next frames in a
-background thread while the current one is registered (OpenCV and torch release the GIL), a
-network on every core taking turns with the registration (`scheduling.Turns`).
+it is `extract` (preprocess → describe: needs no other frame) then `add_frame` (track → compose,
+in frame order), into the segment `segments.Segments` says. `stream` runs them over a video
+with, when `[pipeline] overlap` is on (or `auto` measured it faster: `scheduling.OverlapTrial`),
+the extraction of the next frames in a background thread while the current one is registered
+(OpenCV and torch release the GIL), a network on every core taking turns with the registration
+(`scheduling.Turns`).
 `MosaicBuilder.finish` renders the mosaic segment(s) and the report. Reading files, progress
 bars and the viewer stay outside: the viewer is injected and is a no-op unless the user turns
 it on.
@@ -63,7 +64,8 @@ from mosaic.report import (
     build_report,
 )
 from mosaic.scheduling import OverlapTrial, Turns
-from mosaic.tracking import Track, Tracker, make_tracker
+from mosaic.segments import Segment, SegmentMosaic, Segments, note_registration
+from mosaic.tracking import Track
 from mosaic.viz import NullViewer, Viewer
 
 log = logging.getLogger(__name__)
@@ -132,16 +134,6 @@ class Extracted:
 
 
 @dataclass(frozen=True)
-class SegmentMosaic:
-    """A rendered mosaic segment and the map from its reference frame into the image."""
-
-    index: int
-    image: np.ndarray  # uint8 HxWx3, the bounding box of the placed frames
-    H_ref_to_mosaic: np.ndarray
-    n_frames: int
-
-
-@dataclass(frozen=True)
 class MosaicResult:
     """Rendered segments (largest first is `main`) and the report."""
 
@@ -154,7 +146,7 @@ class MosaicResult:
         return max(self.segments, key=lambda s: s.n_frames, default=None)
 
 
-class _Timer:
+class Timer:
     """Accumulates wall time per stage into a record."""
 
     def __init__(self, record: FrameRecord):
@@ -166,28 +158,6 @@ class _Timer:
         elapsed = (time.perf_counter() - start) * 1e3
         self._record.stage_ms[stage] = self._record.stage_ms.get(stage, 0.0) + elapsed
         return out
-
-
-@dataclass(frozen=True)
-class _Join:
-    """A later segment met again: the frame that came back to the first segment also
-    registered to it (`_back_to_first`), which ties the two segments' references."""
-
-    segment: int  # the later segment
-    frame: int  # input index of the frame placed in the first segment
-    reference: int  # input index of the later segment's frame it registered to
-    H_frame_to_reference: np.ndarray  # decoded pixels
-
-
-@dataclass
-class _Segment:
-    """One mosaic under construction: its canvas, its tracker and the frames placed on it."""
-
-    index: int
-    canvas: Canvas
-    tracker: Tracker
-    records: list[FrameRecord] = field(default_factory=list)
-    refined_poses: dict[int, np.ndarray] | None = None  # H_frame_to_ref after refinement
 
 
 Reread = Callable[[], Iterable[tuple[int, np.ndarray | None]]]
@@ -207,7 +177,7 @@ class MosaicBuilder:
         self.viewer = viewer if viewer is not None else NullViewer()
         self.records: list[FrameRecord] = []
         self.stopped = False  # set by on_failure = "stop" at the first failed frame
-        self._segments: list[_Segment] = []
+        self.segments = Segments(config, self._to_frame)
         self._gate = FrameGate(config.gating)
         self._overlay = OverlayMask(config.preprocess)
         self._reflexes = ReflexMask(config.preprocess)
@@ -236,30 +206,12 @@ class MosaicBuilder:
         self._started = time.perf_counter()
         self.overlap = OverlapTrial(config.pipeline.overlap)
         self._turns = Turns(on=False)  # `stream` sets its own
-        # failures in a row, and the last of them (`_start_again`)
-        self._stalled = 0
-        self._last_failed: Extracted | None = None
-        self._active = 0  # index of the segment new frames go to
-        self._joins: list[_Join] = []  # later segments the camera came back from
-        self._joined_stats: list[dict[str, Any]] = []  # tracker stats of segments joined
-
-    @property
-    def _segment(self) -> _Segment | None:
-        return self._segments[self._active] if self._segments else None
-
-    def _new_segment(self) -> _Segment:
-        segment = _Segment(
-            len(self._segments), Canvas(self.config.compose), make_tracker(self.config)
-        )
-        self._segments.append(segment)
-        self._active = segment.index
-        return segment
 
     def process(
         self, index: int, image: np.ndarray | None, error: str | None = None
     ) -> FrameRecord:
         """Register and compose one frame; undecodable or unusable frames are skipped."""
-        return self.register(self.extract(index, image, error))
+        return self.add_frame(self.extract(index, image, error))
 
     def stream(self, frames: Iterable[Frame]) -> Iterator[FrameRecord]:
         """`process` every frame in order, extracting ahead in a background thread where
@@ -271,7 +223,7 @@ class MosaicBuilder:
         with Lookahead(turns.ended_after(extracted), depth=2, ahead=ahead) as items, turns:
             for i, item in enumerate(items):
                 turns.before_register(i, items.ahead)  # as the items in flight were asked for
-                record = self.register(item)
+                record = self.add_frame(item)
                 turns.registered()
                 yield record
                 self.overlap.tick()
@@ -291,7 +243,7 @@ class MosaicBuilder:
         record = FrameRecord(index=index)
         if image is None:
             return Extracted(record, None, skip=error or UNDECODABLE)
-        timer = _Timer(record)
+        timer = Timer(record)
         image, record.deinterlaced = timer.run("preprocess", self._fields, image)
         work, S = timer.run("preprocess", self._working_size, image)
         prepared = timer.run("preprocess", prepare, work, self.config.preprocess)
@@ -336,7 +288,7 @@ class MosaicBuilder:
             scale = min(scale, pre.fov_diameter_px / self._retina_diameter_px)
         return resize_by(image, scale)
 
-    def register(self, extracted: Extracted) -> FrameRecord:
+    def add_frame(self, extracted: Extracted) -> FrameRecord:
         """Track and compose an extracted frame (frames in order), report it to the viewer."""
         record, image, prepared = extracted.record, extracted.image, extracted.prepared
         self.records.append(record)
@@ -357,29 +309,28 @@ class MosaicBuilder:
                 w, h, prepared.gray.shape[1], prepared.gray.shape[0], rule,
             )  # fmt: skip
         self._S = extracted.H_frame_to_work
-        timer = _Timer(record)
-        segment = self._segment or self._new_segment()
+        timer = Timer(record)
+        segments = self.segments
+        segment = segments.current or segments.new()
         shape = prepared.gray.shape
         leaf = record.blurred is not None  # see `_place`
-        track = self._back_to_first(record.index, features, shape, timer, leaf)
+        track = segments.back_to_first(record.index, features, shape, timer, leaf)
         if track is not None:
-            segment = self._segments[0]
+            segment = segments.all[0]
         else:
             track = segment.tracker.track(record.index, features, shape, timer, leaf)
-        _note_registration(record, track)
+        note_registration(record, track)
         reason = track.reason
         if reason is None:
-            reason = self._place(
-                segment, record, image, prepared, features, track, timer, extracted.work
-            )
+            reason = self._place(segment, extracted, track, timer)
         if reason is not None and record.blurred is not None:  # as before it was tracked
             return self._skip(
                 record, f"{record.blurred}; not registered: {reason}", image, prepared
             )
         if reason is not None:
-            self._fail(record, image, prepared, features, timer, reason, extracted.work)
+            self._fail(extracted, timer, reason)
             if self.config.pipeline.on_failure == "skip":
-                track = self._start_again(extracted, timer) or track
+                track = segments.start_again(extracted, timer, self._place) or track
         self.viewer.frame(
             FrameEvent(
                 record,
@@ -388,7 +339,7 @@ class MosaicBuilder:
                 self._in_frame(features),
                 track.matches,
                 track.registration,
-                self._segment.canvas if self._segment else None,
+                segments.current.canvas if segments.current else None,
                 None if track.reference is None else self._in_frame(track.reference),
                 self._C,
             )
@@ -397,20 +348,6 @@ class MosaicBuilder:
 
     # The tracker works at the working size; the records and the viewer in the pixels of the
     # frames as decoded; the canvas in those of `[compose] resolution` (`_C`).
-
-    def _to_frame(self, H_work_to_ref_work: np.ndarray) -> np.ndarray:
-        """H_frame_to_ref (decoded pixels) of a homography between working-size frames."""
-        if self._S is None:
-            return H_work_to_ref_work
-        H = np.linalg.inv(self._S) @ H_work_to_ref_work @ self._S
-        return H / H[2, 2]
-
-    def _in_frame(self, features: Features) -> Features:
-        """Features with their points in the pixels of the decoded frame."""
-        if self._S is None:
-            return features
-        factor = np.array([1.0 / self._S[0, 0], 1.0 / self._S[1, 1]], np.float32)
-        return dataclasses.replace(features, xy=to_frame_pixels(features.xy, factor))
 
     @property
     def _C(self) -> np.ndarray | None:
@@ -430,10 +367,19 @@ class MosaicBuilder:
             work, _ = self._working_size(image)
         return work, _conjugated(H_frame_to_ref, C)
 
-    def _H_ref_to_mosaic(self, segment: _Segment) -> np.ndarray:
-        """The segment's reference frame (decoded pixels) into its mosaic's pixels."""
-        H = segment.canvas.H_ref_to_canvas
-        return H if self._C is None else H @ self._C
+    def _to_frame(self, H_work_to_ref_work: np.ndarray) -> np.ndarray:
+        """H_frame_to_ref (decoded pixels) of a homography between working-size frames."""
+        if self._S is None:
+            return H_work_to_ref_work
+        H = np.linalg.inv(self._S) @ H_work_to_ref_work @ self._S
+        return H / H[2, 2]
+
+    def _in_frame(self, features: Features) -> Features:
+        """Features with their points in the pixels of the decoded frame."""
+        if self._S is None:
+            return features
+        factor = np.array([1.0 / self._S[0, 0], 1.0 / self._S[1, 1]], np.float32)
+        return dataclasses.replace(features, xy=to_frame_pixels(features.xy, factor))
 
     def _frame_mask(self, prepared: Prepared, image: np.ndarray) -> np.ndarray:
         """The working-size mask at the decoded frame's size."""
@@ -454,19 +400,15 @@ class MosaicBuilder:
         self.viewer.frame(FrameEvent(record, image, prepared, None, None, None, None, None))
         return record
 
-    def _place(
-        self,
-        segment: _Segment,
-        record: FrameRecord,
-        image: np.ndarray,
-        prepared: Prepared,
-        features: Features,
-        track: Track,
-        timer: _Timer,
-        work: np.ndarray | None = None,
-    ) -> str | None:
-        """Put the frame on the canvas and let the tracker take it; or say why not. `work`:
-        the frame at the working size, if at hand."""
+    def _place(self, segment: Segment, frame: Extracted, track: Track, timer: Timer) -> str | None:
+        """Put the frame on the canvas and let the tracker take it; or say why not."""
+        record, image, prepared, features = (
+            frame.record,
+            frame.image,
+            frame.prepared,
+            frame.features,
+        )
+        assert image is not None and prepared is not None and features is not None
         assert track.H_frame_to_ref is not None
         H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
         if record.blurred is not None:  # registered, kept out of the blend; a leaf of the
@@ -480,7 +422,7 @@ class MosaicBuilder:
             )
             segment.records.append(record)
             return None
-        image, H_mosaic = self._in_mosaic_px(image, work, H_frame_to_ref)
+        image, H_mosaic = self._in_mosaic_px(image, frame.work, H_frame_to_ref)
         mask = self._frame_mask(prepared, image)
         # the video's side bands and vignetting, from the frames placed so far
         timer.run("compose", self._photometry.observe, image, mask)
@@ -497,7 +439,7 @@ class MosaicBuilder:
         segment.tracker.commit(record.index, features, prepared.gray.shape, track)
         record.status, record.H_frame_to_ref = REGISTERED, H_frame_to_ref
         record.reason = None
-        self._stalled, self._last_failed = 0, None
+        self.segments.placed()
         record.segment = segment.index
         self._set_quality(record, quality)
         segment.records.append(record)
@@ -507,217 +449,20 @@ class MosaicBuilder:
         record.quality = quality
         record.flagged = bool(quality < self.config.compose.quality_threshold)  # NaN: False
 
-    def _fail(
-        self,
-        record: FrameRecord,
-        image: np.ndarray,
-        prepared: Prepared,
-        features: Features,
-        timer: _Timer,
-        reason: str,
-        work: np.ndarray | None = None,
-    ) -> None:
+    def _fail(self, frame: Extracted, timer: Timer, reason: str) -> None:
+        record, features, prepared = frame.record, frame.features, frame.prepared
+        assert features is not None and prepared is not None
         record.status, record.reason = FAILED, reason
         policy = self.config.pipeline.on_failure
         log.info("frame %d failed (%s): %s", record.index, policy, reason)
         if policy == "stop":
             self.stopped = True
         elif policy == "restart":
-            segment = self._new_segment()
+            segment = self.segments.new()
             first = segment.tracker.track(record.index, features, prepared.gray.shape, timer)
-            placed = self._place(segment, record, image, prepared, features, first, timer, work)
-            if placed is None:
+            if self._place(segment, frame, first, timer) is None:
                 record.status = FAILED
                 record.reason = f"{reason}; started segment {segment.index}"
-
-    def _back_to_first(
-        self,
-        index: int,
-        features: Features,
-        shape: tuple[int, int],
-        timer: _Timer,
-        leaf: bool = False,
-    ) -> Track | None:
-        """While a later segment grows (`_start_again`), each frame is tried against the first
-        segment before it: a camera that comes back to the area mapped first continues that
-        mosaic, as it would have without the later segment. The frame's track there, or None."""
-        if self._active == 0 or self.config.pipeline.on_failure != "skip":
-            return None
-        track = self._segments[0].tracker.track(index, features, shape, timer, leaf)
-        if track.reason is not None:
-            return None
-        log.info("frame %d registers to the first segment again", index)
-        later = self._segments[self._active]
-        self._active = 0
-        back = later.tracker.track(index, features, shape, timer, leaf)
-        if back.H_frame_to_ref is not None and back.reference_index is not None:
-            poses = {r.index: r.H_frame_to_ref for r in later.records}
-            H_reference = poses.get(back.reference_index)
-            if H_reference is not None:
-                H = np.linalg.solve(H_reference, self._to_frame(back.H_frame_to_ref))
-                self._joins.append(_Join(later.index, index, back.reference_index, H / H[2, 2]))
-        return track
-
-    def _start_again(self, failed: Extracted, timer: _Timer) -> Track | None:
-        """After failures in a row (`skip`), start the mosaic again from the failed frame
-        before this one and this one, when they register to each other. Returns this frame's
-        new track (None: nothing changed).
-
-        - Against a segment that holds only its first frame (`[pipeline] reanchor_after`
-          failures): a dark, featureless or blurred first frame would otherwise leave every
-          later frame failed (measured: a magnified video that opens on a dark region, 1 of
-          120 frames placed). The two frames replace it; the old first frame is reported failed.
-        - Against a segment of several frames (`new_segment_after` failures): the camera has
-          left the mapped area (or the frames that map the way there do not register), and
-          every later frame would fail. The two frames start a new segment, written beside
-          the first; frames are still tried against the first segment first
-          (`_back_to_first`).
-        """
-        segment = self._segment
-        if segment is None:
-            return None
-        first_only = len(segment.records) == 1
-        pipeline = self.config.pipeline
-        after = pipeline.reanchor_after if first_only else pipeline.new_segment_after
-        if after <= 0:
-            return None
-        self._stalled += 1
-        previous, self._last_failed = self._last_failed, failed
-        if self._stalled < after or previous is None:
-            return None
-        assert previous.features is not None and previous.prepared is not None
-        assert failed.features is not None and failed.prepared is not None
-        shape = failed.prepared.gray.shape
-        if not first_only and (resumed := self._resume(failed, shape, timer)) is not None:
-            return resumed
-        trial = make_tracker(self.config)
-        trial.commit(previous.record.index, previous.features, shape, Track(np.eye(3)))
-        if trial.track(failed.record.index, failed.features, shape, timer).reason is not None:
-            return None
-        if first_only:
-            fresh = _Segment(segment.index, Canvas(self.config.compose), make_tracker(self.config))
-            self._segments[segment.index] = fresh
-        else:
-            fresh = self._new_segment()
-        track = None
-        for frame in (previous, failed):
-            assert frame.image is not None and frame.prepared is not None
-            assert frame.features is not None
-            track = fresh.tracker.track(frame.record.index, frame.features, shape, timer)
-            _note_registration(frame.record, track)
-            reason = self._place(
-                fresh,
-                frame.record,
-                frame.image,
-                frame.prepared,
-                frame.features,
-                track,
-                timer,
-                frame.work,
-            )
-            if reason is not None:
-                frame.record.reason = reason
-        if not first_only:
-            log.warning(
-                "frames did not register to the mosaic since frame %d; segment %d starts at "
-                "frame %d",
-                segment.records[-1].index + 1,
-                fresh.index,
-                previous.record.index,
-            )
-            return track
-        dropped = segment.records[0]
-        dropped.status, dropped.segment, dropped.H_frame_to_ref = FAILED, None, None
-        dropped.reason = (
-            f"dropped as the mosaic's first frame: the next {after} frames did not register to it"
-        )
-        log.warning(
-            "frame %d dropped: no frame registered to it; the mosaic starts again at frame %d",
-            dropped.index,
-            previous.record.index,
-        )
-        return track
-
-    def _resume(self, failed: Extracted, shape: tuple[int, int], timer: _Timer) -> Track | None:
-        """Before another segment starts: a camera lost again may be back over the area of a
-        later segment it left, so the frame is tried against each (the most recent first);
-        where it registers, that segment goes on. Tried where a new segment would be (each
-        failure from the `new_segment_after`-th on), one registration per later segment."""
-        assert failed.image is not None and failed.prepared is not None
-        assert failed.features is not None
-        for other in reversed(self._segments[1:]):
-            if other.index == self._active or not other.records:
-                continue
-            track = other.tracker.track(failed.record.index, failed.features, shape, timer)
-            if track.reason is not None:
-                continue
-            reason = self._place(
-                other,
-                failed.record,
-                failed.image,
-                failed.prepared,
-                failed.features,
-                track,
-                timer,
-                failed.work,
-            )
-            if reason is not None:
-                continue
-            _note_registration(failed.record, track)
-            self._active = other.index
-            index = failed.record.index
-            log.warning("frame %d registers to segment %d again; it goes on", index, other.index)
-            return track
-        return None
-
-    def _refine(self, segment: _Segment) -> None:
-        """Global refinement of the segment's poses (keyframe strategy)."""
-        if segment.tracker.refine() is None:
-            return
-        poses = {r.index: segment.tracker.pose(r.index) for r in segment.records}
-        segment.refined_poses = {k: self._to_frame(H) for k, H in poses.items() if H is not None}
-
-    def _joined_poses(self) -> dict[int, dict[int, np.ndarray]]:
-        """The refined poses, in the first segment's frame, of the frames of each later segment
-        the camera came back from (`_Join`), carried over by the frame that registered to both:
-        {later segment: {frame: H_frame_to_ref}}."""
-        first = self._segments[0] if self._segments else None
-        joined: dict[int, dict[int, np.ndarray]] = {}
-        for join in self._joins:
-            later = self._segments[join.segment]
-            if join.segment in joined or first is None or not first.refined_poses:
-                continue
-            needed = {join.reference, *(r.index for r in later.records)}
-            if not later.refined_poses or not needed <= later.refined_poses.keys():
-                continue
-            if join.frame not in first.refined_poses:
-                continue
-            H_later_to_first = first.refined_poses[join.frame] @ np.linalg.inv(
-                later.refined_poses[join.reference] @ join.H_frame_to_reference
-            )
-            poses = (H_later_to_first @ later.refined_poses[r.index] for r in later.records)
-            joined[later.index] = {
-                r.index: H / H[2, 2] for r, H in zip(later.records, poses, strict=True)
-            }
-        return joined
-
-    def _join(self, joined: dict[int, dict[int, np.ndarray]]) -> None:
-        """Put the frames of the `joined` later segments into the first at their poses there
-        (`_joined_poses`), once the first has been rendered with them; the segments left are
-        numbered again in order."""
-        first = self._segments[0]
-        assert first.refined_poses is not None
-        for k, poses in joined.items():
-            later = self._segments[k]
-            log.info("segment %d joins the first", k)
-            first.refined_poses.update(poses)
-            first.records = sorted(first.records + later.records, key=lambda r: r.index)
-            self._joined_stats.append(later.tracker.stats())
-        self._segments = [s for s in self._segments if s.index not in joined]
-        for number, segment in enumerate(self._segments):
-            segment.index = number
-            for record in segment.records:
-                record.segment = number
 
     def _masked_frames(self, reread: Reread) -> FrameSource:
         """The registered frames read again, (index, image, mask), with the whole video's
@@ -754,11 +499,12 @@ class MosaicBuilder:
         """Render refined segments again from the video's registered frames (`frames`,
         `_masked_frames`): one or two more passes over them (`compose.render_segments`).
         Later segments the camera came back from are rendered into the first
-        (`_joined_poses`); they join it only where that rendering succeeds."""
-        joined, self._joins = self._joined_poses(), []
+        (`Segments.joined_poses`); they join it only where that rendering succeeds."""
+        segments = self.segments
+        joined, segments.joins = segments.joined_poses(), []
         todo = {
             s.index: s
-            for s in self._segments
+            for s in segments.all
             if s.refined_poses and s.records and s.index not in joined
         }
         poses = {k: dict(s.refined_poses or {}) for k, s in todo.items()}
@@ -792,7 +538,7 @@ class MosaicBuilder:
                 log.warning("segment %d not re-rendered: the input changed on re-reading", k)
                 continue
             if k == 0 and joined:
-                self._join(joined)
+                segments.join(joined)
             segment.canvas = canvas
             for record in segment.records:
                 record.H_frame_to_ref = segment.refined_poses[record.index]  # type: ignore[index]
@@ -818,8 +564,7 @@ class MosaicBuilder:
             if reread is not None and self.config.keyframes.rerender:
                 ahead = ReadAhead(self._masked_frames(reread))
             try:
-                for segment in self._segments:
-                    self._refine(segment)
+                self.segments.refine()
                 if ahead is not None:
                     self._rerender(ahead)
             finally:
@@ -832,11 +577,7 @@ class MosaicBuilder:
     def snapshot(self, interrupted: bool = True) -> MosaicResult:
         """The segment canvases as they are and the report so far (no refinement, the viewer
         not told): what `finish` renders, and a run's periodic checkpoint."""
-        mosaics = [
-            SegmentMosaic(s.index, s.canvas.picture(), self._H_ref_to_mosaic(s), s.canvas.n_frames)
-            for s in self._segments
-            if s.canvas.n_frames
-        ]
+        mosaics = self.segments.mosaics(self._C)
         return MosaicResult(mosaics, build_report(self.summary_inputs(), mosaics, interrupted))
 
     def summary_inputs(self) -> ReportInputs:
@@ -853,10 +594,10 @@ class MosaicBuilder:
             looks_interlaced=self._fields.looks_interlaced,
             H_frame_to_work=self._S,
             retina_diameter_px=self._retina_diameter_px,
-            tracker_stats=[s.tracker.stats() for s in self._segments],
-            joined_stats=self._joined_stats,
-            rerendered=any(s.refined_poses for s in self._segments),
-            blends=[s.canvas.blend for s in self._segments],
+            tracker_stats=[s.tracker.stats() for s in self.segments.all],
+            joined_stats=self.segments.joined_stats,
+            rerendered=any(s.refined_poses for s in self.segments.all),
+            blends=[s.canvas.blend for s in self.segments.all],
             photometry=self._photometry,
             frame_shape=self._compositor.frame_shape,
             gain_solution=self._gain_solution,
@@ -875,20 +616,3 @@ def _circle_in_frame(circle: Circle, H_frame_to_work: np.ndarray | None) -> Circ
         return circle
     s, tx, ty = H_frame_to_work[0, 0], H_frame_to_work[0, 2], H_frame_to_work[1, 2]
     return (circle[0] - tx) / s, (circle[1] - ty) / s, circle[2] / s
-
-
-def _note_registration(record: FrameRecord, track: Track) -> None:
-    """The record's registration figures from a track (none for a segment's first frame)."""
-    registration = track.registration
-    if registration is None:
-        record.n_matches = record.n_inliers = 0
-        record.reproj_error_px = record.coverage = float("nan")
-        record.model = record.reference = None
-        return
-    record.n_matches = registration.n_matches
-    record.n_inliers = registration.n_inliers
-    record.reproj_error_px = registration.reproj_error_px
-    record.model = registration.model
-    record.coverage = registration.coverage
-    record.reference = track.reference_index
-    record.by_flow = track.by_flow

@@ -29,7 +29,8 @@ from mosaic.photometry import FlatFieldEstimator, SideBands, VideoPhotometry, sh
 from mosaic.registration import MODELS
 
 if TYPE_CHECKING:
-    from mosaic.pipeline import FrameRecord, SegmentMosaic
+    from mosaic.pipeline import FrameRecord
+    from mosaic.segments import SegmentMosaic
 
 STAGES = ("preprocess", "detect", "describe", "match", "estimate", "compose")
 REGISTERED, FAILED, SKIPPED = "registered", "failed", "skipped"

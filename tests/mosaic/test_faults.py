@@ -275,10 +275,10 @@ def test_checkpoints_are_replaced_by_the_final_outputs(short_clip, tmp_path):
 
 BROKEN_REFINEMENT = """
 import numpy as np
-from mosaic.pipeline import MosaicBuilder
-def _broken(self, segment):
+from mosaic.segments import Segments
+def _broken(self):
     raise np.linalg.LinAlgError("Singular matrix")
-MosaicBuilder._refine = _broken
+Segments.refine = _broken
 """
 
 BROKEN_TRACKER = """

@@ -14,8 +14,8 @@ from mosaic.cli import app
 from mosaic.config import Config, with_overrides
 from mosaic.errors import MosaicError
 from mosaic.io import open_frames
-from mosaic.pipeline import MosaicBuilder
 from mosaic.runner import Outputs, is_frame_folder, run_video, segment_path, thumbnail
+from mosaic.segments import Segments
 from mosaic.synthetic.synth import SynthParams, write_synthetic_video
 from tests.conftest import SAMPLE_IMAGE
 
@@ -141,10 +141,10 @@ def test_ctrl_c_or_an_exception_while_rendering_keeps_the_live_mosaic(
 def test_build_exits_1_and_writes_the_live_mosaic_when_refinement_fails(
     clip, tmp_path, monkeypatch
 ):
-    def broken(self, segment):
+    def broken(self):
         raise np.linalg.LinAlgError("Singular matrix")
 
-    monkeypatch.setattr(MosaicBuilder, "_refine", broken)
+    monkeypatch.setattr(Segments, "refine", broken)
     out = tmp_path / "m.png"
     result = CliRunner().invoke(app, ["build", str(clip), "-o", str(out), "--detector", "sift"])
     assert result.exit_code == 1, result.output
