@@ -37,7 +37,7 @@ from mosaic.compose import (
 )
 from mosaic.config import Config
 from mosaic.errors import CanvasLimitError
-from mosaic.features import FeatureExtractor, Features, to_frame_pixels
+from mosaic.features import FeatureExtractor, Features
 from mosaic.io import UNDECODABLE, Frame, Lookahead
 from mosaic.lens_rim import Circle, LensRimMask, outside_rim_removed
 from mosaic.matching import Matches
@@ -48,9 +48,6 @@ from mosaic.preprocess import (
     Prepared,
     first_field,
     prepare,
-    resize_by,
-    retina_disc,
-    working_scale,
 )
 from mosaic.quality import frame_vs_canvas
 from mosaic.refine import lk_texture
@@ -67,6 +64,7 @@ from mosaic.scheduling import OverlapTrial, Turns
 from mosaic.segments import Segment, SegmentMosaic, Segments, note_registration
 from mosaic.tracking import Track
 from mosaic.viz import NullViewer, Viewer
+from mosaic.working_size import WorkingSize, circle_in_frame, conjugated
 
 log = logging.getLogger(__name__)
 
@@ -177,7 +175,8 @@ class MosaicBuilder:
         self.viewer = viewer if viewer is not None else NullViewer()
         self.records: list[FrameRecord] = []
         self.stopped = False  # set by on_failure = "stop" at the first failed frame
-        self.segments = Segments(config, self._to_frame)
+        self._size = WorkingSize(config)
+        self.segments = Segments(config, self._size.to_frame)
         self._gate = FrameGate(config.gating)
         self._overlay = OverlayMask(config.preprocess)
         self._reflexes = ReflexMask(config.preprocess)
@@ -188,12 +187,6 @@ class MosaicBuilder:
         self._fields = Deinterlacer(config.preprocess.deinterlace)
         compose = config.compose
         self._photometry = VideoPhotometry(compose.side_bands, compose.flatfield)
-        self._max_side = config.preprocess.max_side_px
-        self._S: np.ndarray | None = None  # H_frame_to_work of the video's frames (one size)
-        # diameter (px) of the whole retina the video's first readable frame shows (None: it
-        # shows none, or [preprocess] fov_diameter_px = 0): it sets every frame's working size
-        self._retina_diameter_px: float | None = None
-        self._retina_decided = False
         # The quality score is computed where it is used: live when the viewer shows it or no
         # re-render will replace the live poses; else once, in the re-render pass, at the poses
         # the report gives (the live score would be overwritten there).
@@ -245,7 +238,7 @@ class MosaicBuilder:
             return Extracted(record, None, skip=error or UNDECODABLE)
         timer = Timer(record)
         image, record.deinterlaced = timer.run("preprocess", self._fields, image)
-        work, S = timer.run("preprocess", self._working_size, image)
+        work, S = timer.run("preprocess", self._size.resize, image)
         prepared = timer.run("preprocess", prepare, work, self.config.preprocess)
         gate = self._gate(prepared)  # before overlay masking: sharpness of the whole view
         record.blurred = gate.blurred
@@ -253,7 +246,7 @@ class MosaicBuilder:
         prepared = timer.run("preprocess", self._rim, work, prepared)
         if self._rim.found is not None:  # kept for the re-render: left out there too
             self._rims[index] = (self._rim.found, self._rim.margin_px)
-            record.lens_rim = _circle_in_frame(self._rim.found, S)
+            record.lens_rim = circle_in_frame(self._rim.found, S)
         prepared = timer.run("preprocess", self._reflexes, work, prepared)
         if self._reflexes.found is not None:  # kept for the re-render: left out there too
             self._reflex_spots[index] = self._reflexes.found
@@ -270,24 +263,6 @@ class MosaicBuilder:
         record.n_keypoints = len(features)
         return Extracted(record, image, prepared, features, H_frame_to_work=S, work=work)
 
-    def _working_size(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """The frame at the video's working size and H_frame_to_work (None: unchanged): its
-        longer side at most `[preprocess] max_side_px`, and, when the video's first readable
-        frame shows a whole retina (`preprocess.retina_disc`: fundus video), that retina's
-        diameter at most `fov_diameter_px` (the detector's scale, as `mosaic register`), the
-        same factor for every frame. Slit-lamp, AO and magnified fundus video show no whole
-        retina: max_side_px alone, as before. Never upscales; max_side_px = 0 turns both off."""
-        pre = self.config.preprocess
-        if not self._retina_decided:
-            self._retina_decided = True
-            rule_on = pre.fov_diameter_px > 0 and self._max_side > 0
-            disc = retina_disc(image) if rule_on else None
-            self._retina_diameter_px = None if disc is None else 2.0 * disc[2]
-        scale = working_scale(image, self._max_side)
-        if self._retina_diameter_px is not None:
-            scale = min(scale, pre.fov_diameter_px / self._retina_diameter_px)
-        return resize_by(image, scale)
-
     def add_frame(self, extracted: Extracted) -> FrameRecord:
         """Track and compose an extracted frame (frames in order), report it to the viewer."""
         record, image, prepared = extracted.record, extracted.image, extracted.prepared
@@ -296,19 +271,7 @@ class MosaicBuilder:
             return self._skip(record, extracted.skip or "no features", image, prepared)
         assert image is not None and prepared is not None
         features = extracted.features
-        if self._S is None and extracted.H_frame_to_work is not None:
-            h, w = image.shape[:2]
-            rule = f"max_side_px = {self._max_side}"
-            if self._retina_diameter_px is not None:
-                rule += (
-                    f", fov_diameter_px = {self.config.preprocess.fov_diameter_px} with the "
-                    f"retina {self._retina_diameter_px:.0f} px across"
-                )
-            log.info(
-                "frames of %dx%d are registered at %dx%d ([preprocess] %s)",
-                w, h, prepared.gray.shape[1], prepared.gray.shape[0], rule,
-            )  # fmt: skip
-        self._S = extracted.H_frame_to_work
+        self._size.settle(extracted.H_frame_to_work, image.shape, prepared.gray.shape)
         timer = Timer(record)
         segments = self.segments
         segment = segments.current or segments.new()
@@ -336,50 +299,15 @@ class MosaicBuilder:
                 record,
                 image,
                 prepared,
-                self._in_frame(features),
+                self._size.in_frame(features),
                 track.matches,
                 track.registration,
                 segments.current.canvas if segments.current else None,
-                None if track.reference is None else self._in_frame(track.reference),
-                self._C,
+                None if track.reference is None else self._size.in_frame(track.reference),
+                self._size.composed_px,
             )
         )
         return record
-
-    # The tracker works at the working size; the records and the viewer in the pixels of the
-    # frames as decoded; the canvas in those of `[compose] resolution` (`_C`).
-
-    @property
-    def _C(self) -> np.ndarray | None:
-        """H_frame_to_mosaic_px: decoded pixels into those the mosaic is composed in (None:
-        the same), the working size's with `[compose] resolution = "working"`."""
-        return self._S if self.config.compose.resolution == "working" else None
-
-    def _in_mosaic_px(
-        self, image: np.ndarray, work: np.ndarray | None, H_frame_to_ref: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """A decoded frame (and the same at the working size, if at hand) and its pose, in the
-        pixels the mosaic is composed in (`_C`)."""
-        C = self._C
-        if C is None:
-            return image, H_frame_to_ref
-        if work is None:
-            work, _ = self._working_size(image)
-        return work, _conjugated(H_frame_to_ref, C)
-
-    def _to_frame(self, H_work_to_ref_work: np.ndarray) -> np.ndarray:
-        """H_frame_to_ref (decoded pixels) of a homography between working-size frames."""
-        if self._S is None:
-            return H_work_to_ref_work
-        H = np.linalg.inv(self._S) @ H_work_to_ref_work @ self._S
-        return H / H[2, 2]
-
-    def _in_frame(self, features: Features) -> Features:
-        """Features with their points in the pixels of the decoded frame."""
-        if self._S is None:
-            return features
-        factor = np.array([1.0 / self._S[0, 0], 1.0 / self._S[1, 1]], np.float32)
-        return dataclasses.replace(features, xy=to_frame_pixels(features.xy, factor))
 
     def _frame_mask(self, prepared: Prepared, image: np.ndarray) -> np.ndarray:
         """The working-size mask at the decoded frame's size."""
@@ -410,7 +338,7 @@ class MosaicBuilder:
         )
         assert image is not None and prepared is not None and features is not None
         assert track.H_frame_to_ref is not None
-        H_frame_to_ref = self._to_frame(track.H_frame_to_ref)
+        H_frame_to_ref = self._size.to_frame(track.H_frame_to_ref)
         if record.blurred is not None:  # registered, kept out of the blend; a leaf of the
             # track where a keyframe registers it (else it carries the chain on)
             leaf = dataclasses.replace(track, leaf=True)
@@ -422,7 +350,7 @@ class MosaicBuilder:
             )
             segment.records.append(record)
             return None
-        image, H_mosaic = self._in_mosaic_px(image, frame.work, H_frame_to_ref)
+        image, H_mosaic = self._size.in_mosaic_px(image, frame.work, H_frame_to_ref)
         mask = self._frame_mask(prepared, image)
         # the video's side bands and vignetting, from the frames placed so far
         timer.run("compose", self._photometry.observe, image, mask)
@@ -481,7 +409,7 @@ class MosaicBuilder:
                 if index in interlaced:  # the frame as it was registered
                     image = first_field(image)
                 # the overlay estimate of the whole video: no overlay pixels from any frame
-                work, _ = self._working_size(image)
+                work, _ = self._size.resize(image)
                 prepared = self._overlay.apply(prepare(work, mask_config))
                 if index in self._rims:
                     mask = outside_rim_removed(prepared.mask, *self._rims[index])
@@ -489,7 +417,7 @@ class MosaicBuilder:
                 if index in self._reflex_spots:
                     mask = self._reflex_spots[index].removed_from(prepared.mask)
                     prepared = Prepared(prepared.gray, mask)
-                if self._C is not None:  # composed at the working size
+                if self._size.composed_px is not None:  # composed at the working size
                     image = work
                 yield index, image, self._photometry.frame_mask(self._frame_mask(prepared, image))
 
@@ -510,9 +438,9 @@ class MosaicBuilder:
         poses = {k: dict(s.refined_poses or {}) for k, s in todo.items()}
         for later in joined.values():
             poses[0].update(later)
-        if self._C is not None:  # into the pixels the frames are composed in
-            C = self._C
-            poses = {k: {i: _conjugated(H, C) for i, H in p.items()} for k, p in poses.items()}
+        C = self._size.composed_px
+        if C is not None:  # into the pixels the frames are composed in
+            poses = {k: {i: conjugated(H, C) for i, H in p.items()} for k, p in poses.items()}
         owner = {r.index for s in todo.values() for r in s.records}
         owner.update(index for later in joined.values() for index in later)
         owner -= {r.index for r in self.records if r.blurred is not None}  # not blended
@@ -577,7 +505,7 @@ class MosaicBuilder:
     def snapshot(self, interrupted: bool = True) -> MosaicResult:
         """The segment canvases as they are and the report so far (no refinement, the viewer
         not told): what `finish` renders, and a run's periodic checkpoint."""
-        mosaics = self.segments.mosaics(self._C)
+        mosaics = self.segments.mosaics(self._size.composed_px)
         return MosaicResult(mosaics, build_report(self.summary_inputs(), mosaics, interrupted))
 
     def summary_inputs(self) -> ReportInputs:
@@ -592,8 +520,8 @@ class MosaicBuilder:
             stopped=self.stopped,
             field_offset_px=self._fields.median_offset_px,
             looks_interlaced=self._fields.looks_interlaced,
-            H_frame_to_work=self._S,
-            retina_diameter_px=self._retina_diameter_px,
+            H_frame_to_work=self._size.S,
+            retina_diameter_px=self._size.retina_diameter_px,
             tracker_stats=[s.tracker.stats() for s in self.segments.all],
             joined_stats=self.segments.joined_stats,
             rerendered=any(s.refined_poses for s in self.segments.all),
@@ -602,17 +530,3 @@ class MosaicBuilder:
             frame_shape=self._compositor.frame_shape,
             gain_solution=self._gain_solution,
         )
-
-
-def _conjugated(H_frame_to_ref: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """The same transform between frames resized by `C` (a scale matrix)."""
-    H = C @ H_frame_to_ref @ np.linalg.inv(C)
-    return H / H[2, 2]
-
-
-def _circle_in_frame(circle: Circle, H_frame_to_work: np.ndarray | None) -> Circle:
-    """A circle (cx, cy, r) at the working size in the pixels of the frame as decoded."""
-    if H_frame_to_work is None:
-        return circle
-    s, tx, ty = H_frame_to_work[0, 0], H_frame_to_work[0, 2], H_frame_to_work[1, 2]
-    return (circle[0] - tx) / s, (circle[1] - ty) / s, circle[2] / s
