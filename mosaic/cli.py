@@ -44,7 +44,7 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
         write_image,
     )
     from mosaic.pairs import register_pair
-    from mosaic.refine import warp_check
+    from mosaic.pixel_refine import warp_check
     from mosaic.registration import MODELS
     from mosaic.report import BuildReport, Summary
     from mosaic.runner import Outputs, run_video
@@ -657,7 +657,7 @@ def _pair_result(
 ) -> dict[str, Any]:
     images = read_image(fixed), read_image(moving)
     registration = register_pair(*images, config, extractor, model)
-    H, Q = registration.H_cur_to_prev, registration.Q_cur_to_prev
+    H, Q = registration.H_moving_to_fixed, registration.Q_moving_to_fixed
     if warp is not None and H is not None:
         write_image(warp, warp_check(*images, H, Q))
     scales = registration.working_scales

@@ -51,8 +51,8 @@ from mosaic.io import (
     write_text,
 )
 from mosaic.pairs import register_pair
+from mosaic.pixel_refine import fixed_to_moving_map
 from mosaic.preprocess import retina_disc
-from mosaic.refine import fixed_to_moving_map
 from mosaic.runner import Outputs, run_video, thumbnail
 
 if TYPE_CHECKING:
@@ -485,12 +485,12 @@ def _align(
     fixed, moving = (_resized(v.image, m, k) for v, m, k in zip((baseline, followup), masks,
                                                                  scales, strict=True))  # fmt: skip
     reg = register_pair(fixed, moving, for_photographs(config), extractor, "auto")
-    if not reg.ok or reg.H_cur_to_prev is None:
+    if not reg.ok or reg.H_moving_to_fixed is None:
         raise NotComparableError(
             f"the follow-up does not register onto the baseline ({reg.reason or 'no model'}): "
             "different eyes, or visits without overlap"
         )
-    H, Q = _rescaled(np.asarray(reg.H_cur_to_prev, float), reg.Q_cur_to_prev, *scales,
+    H, Q = _rescaled(np.asarray(reg.H_moving_to_fixed, float), reg.Q_moving_to_fixed, *scales,
                      followup.image.shape[:2])  # fmt: skip
     scale_change = float(np.sqrt(abs(np.linalg.det(H[:2, :2]))))
     if not 1 / MAX_SCALE_CHANGE < scale_change < MAX_SCALE_CHANGE:

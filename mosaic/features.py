@@ -49,7 +49,7 @@ class Features:
     scores: np.ndarray  # (N,) float32
     sizes: np.ndarray  # (N,) float32 keypoint diameter in px, for the SIFT descriptor
     descriptors: np.ndarray  # (N, D) float32 (L2 distance) or uint8 (binary, Hamming distance)
-    texture: np.ndarray | None = None  # (H, W) uint8 band-passed frame (`refine.lk_texture`)
+    texture: np.ndarray | None = None  # (H, W) uint8 band-passed frame (`pixel_refine.lk_texture`)
 
     def __len__(self) -> int:
         return len(self.xy)

@@ -15,6 +15,7 @@ import numpy as np
 from mosaic.config import Config
 from mosaic.features import FeatureExtractor, Features
 from mosaic.matching import Matches, match_descriptors
+from mosaic.pixel_refine import fit_pair
 from mosaic.preprocess import (
     Disc,
     inverted_as,
@@ -24,7 +25,6 @@ from mosaic.preprocess import (
     resize_by,
     retina_disc,
 )
-from mosaic.refine import fit_pair
 from mosaic.registration import Registration, estimate_motion
 
 log = logging.getLogger(__name__)
@@ -74,14 +74,14 @@ def register_pair(
     extractor: FeatureExtractor,
     model: str | None = None,
 ) -> Registration:
-    """Register one image pair: the result's `H_cur_to_prev` maps `moving` into `fixed` (full
+    """Register one image pair: the result's `H_moving_to_fixed` maps `moving` into `fixed` (full
     size pixels); `model` (default `[registration] model`) as in `estimate_motion`, or
-    "quadratic" (`Q_cur_to_prev`, 2x6; "auto" also chooses it where it beats the homography).
+    "quadratic" (`Q_moving_to_fixed`, 2x6; "auto" also chooses it where it beats the homography).
 
     Each image is registered at its working size (its retina's diameter at `[preprocess]
     fov_diameter_px` when it shows a whole one, else `max_side_px`; `working_scales`), then
     refined through `[registration] refine_levels` levels up to the full resolution
-    (`refine.refine_pair`); a refinement that loses the matches keeps the coarse answer. A
+    (`pixel_refine.refine_pair`); a refinement that loses the matches keeps the coarse answer. A
     pair of opposite vessel polarities (an angiogram and a colour photograph, `[preprocess]
     vessel_polarity`) is also registered with the bright-vessel one inverted, and the
     registration with more inliers answers (`Registration.inverted` says which). With
@@ -130,12 +130,12 @@ def _register_pair(
     if blank:  # say why: a blank, black or out-of-focus image has nothing to match
         images = " and ".join(blank) + (" images" if len(blank) > 1 else " image")
         reason = f"no textured keypoints in the {images}"
-        return dataclasses.replace(reg, H_cur_to_prev=None, reason=reason)
-    if reg.H_cur_to_prev is None:
+        return dataclasses.replace(reg, H_moving_to_fixed=None, reason=reason)
+    if reg.H_moving_to_fixed is None:
         return reg
-    H = np.linalg.inv(S_fixed) @ reg.H_cur_to_prev @ S_moving
+    H = np.linalg.inv(S_fixed) @ reg.H_moving_to_fixed @ S_moving
     error_px = reg.reproj_error_px / scales[1]  # measured in the fixed working image
-    reg = dataclasses.replace(reg, H_cur_to_prev=H / H[2, 2], reproj_error_px=error_px)
+    reg = dataclasses.replace(reg, H_moving_to_fixed=H / H[2, 2], reproj_error_px=error_px)
     if model not in ("homography", "quadratic", "auto"):
         return reg  # a simpler model was asked for: nothing to refine it towards
     if model == "auto" and reg.model != "homography" and discs[1] is None:
@@ -147,7 +147,7 @@ def _register_pair(
         moving,
         xy_full,
         xy_target,
-        reg.H_cur_to_prev,
+        reg.H_moving_to_fixed,
         min(scales),
         config.registration,
         model,
@@ -155,8 +155,8 @@ def _register_pair(
     )
     return dataclasses.replace(
         reg,
-        H_cur_to_prev=fit.H,
-        Q_cur_to_prev=fit.Q if fit.model == "quadratic" else None,
+        H_moving_to_fixed=fit.H,
+        Q_moving_to_fixed=fit.Q if fit.model == "quadratic" else None,
         model=fit.model,
         refined_levels=levels_done,
         reproj_error_px=fit.error_px,

@@ -42,6 +42,7 @@ from mosaic.io import UNDECODABLE, Frame, Lookahead
 from mosaic.lens_rim import Circle, LensRimMask, outside_rim_removed
 from mosaic.matching import Matches
 from mosaic.photometry import VideoPhotometry
+from mosaic.pixel_refine import lk_texture
 from mosaic.preprocess import (
     Deinterlacer,
     FrameGate,
@@ -50,7 +51,6 @@ from mosaic.preprocess import (
     prepare,
 )
 from mosaic.quality import frame_vs_canvas
-from mosaic.refine import lk_texture
 from mosaic.registration import Registration
 from mosaic.report import (
     FAILED,

@@ -67,19 +67,19 @@ ADEQUATE_Z = 5.0
 class Registration:
     """Outcome of registering the current frame to a reference frame."""
 
-    H_cur_to_prev: np.ndarray | None  # 3x3 float64, None when failed
+    H_moving_to_fixed: np.ndarray | None  # 3x3 float64, None when failed
     n_matches: int
     n_inliers: int
     inliers: np.ndarray  # (n_matches,) bool
     reproj_error_px: float  # mean transfer error of the inliers; nan when failed
     reason: str | None  # why it failed; None when registered
-    model: str = "homography"  # the motion model of H_cur_to_prev
+    model: str = "homography"  # the motion model of H_moving_to_fixed
     coverage: float = float("nan")  # share of the current frame inside the inliers' hull
     corner_sd_px: float = float("nan")  # expected corner error of the chosen model (1 sigma)
     # pairs (`pairs.register_pair`): the quadratic transform (2x6, `apply_quadratic`) when
     # the model is "quadratic", each image's working scale, the refinement's levels, and which
     # image was inverted so that both show dark vessels (`[preprocess] vessel_polarity`)
-    Q_cur_to_prev: np.ndarray | None = None
+    Q_moving_to_fixed: np.ndarray | None = None
     working_scales: tuple[float, float] | None = None  # (current, reference)
     refined_levels: int = 0
     inverted: tuple[bool, bool] = (False, False)  # (current, reference) inverted: one polarity
@@ -414,21 +414,22 @@ def estimate_motion(
     selects), refined on all matches within the threshold; the paper's failure rules. With
     `perspective_prior` the model is relaxed into a MAP homography when `relax` is True; when
     False, the pure model and its `perspective_evidence`; when a function, it decides from that
-    evidence, the pure model's H_cur_to_prev and the model's name."""
+    evidence, the pure model's H_moving_to_fixed and the model's name."""
     model = model or config.model
-    if model == "quadratic":  # a 2x6 quadratic is for pairs (`refine.refine_pair`): its homography
+    # a 2x6 quadratic is for pairs (`pixel_refine.refine_pair`): its homography here
+    if model == "quadratic":
         model = "homography"
     n = len(xy_cur)
     if model in ("translation", "similarity", "affine"):
         consensus = _linear_consensus(xy_cur, xy_prev, config, model)
     else:
         consensus = estimate_homography(xy_cur, xy_prev, config)
-    if consensus.H_cur_to_prev is None or not config.refine:
+    if consensus.H_moving_to_fixed is None or not config.refine:
         return consensus
     T = frame_normaliser(shape)
     a_all, b_all = normalised(T, xy_cur), normalised(T, xy_prev)
     corners = normalised(T, np.array([[0, 0], [shape[1], 0], [shape[1], shape[0]], [0, shape[0]]]))
-    M = T @ consensus.H_cur_to_prev @ np.linalg.inv(T)
+    M = T @ consensus.H_moving_to_fixed @ np.linalg.inv(T)
     threshold = config.reproj_threshold_px * T[0, 0]
     huber = HUBER_PX * T[0, 0]
     inliers = consensus.inliers

@@ -1,7 +1,7 @@
 """Where does the current frame go? Registration strategies that place frames on the mosaic.
 
 - `ChainTracker`: the paper's frame-to-frame chaining, `H_frame_to_ref = H_prev_to_ref @
-  H_cur_to_prev`; errors accumulate with every step.
+  H_moving_to_fixed`; errors accumulate with every step.
 - `KeyframeTracker`: each frame registers to the keyframe it overlaps most and to its
   predecessor; a frame becomes a keyframe when its registration to the current one decays
   (inliers, coverage) or their overlap drops, before registration fails. A frame that fails
@@ -31,8 +31,8 @@ from mosaic.config import Config
 from mosaic.features import Features
 from mosaic.geometry import apply_homography, frame_corners
 from mosaic.matching import Matches, match_descriptors
+from mosaic.pixel_refine import flow_points, texture_agreement, track_points
 from mosaic.posegraph import Constraint, Refinement, refine_poses, refine_tilted_poses
-from mosaic.refine import flow_points, texture_agreement, track_points
 from mosaic.registration import Registration, estimate_motion, perspective_needed
 
 log = logging.getLogger(__name__)
@@ -193,16 +193,17 @@ def _tracked(
     model: str | None,
     perspective: PerspectiveEvidence,
 ) -> Registration:
-    """The registration refitted on its inliers re-localised by tracking (`refine.track_points`);
-    it keeps its matches and inlier counts (what keyframe promotion reads). Unchanged where too
-    few points track or the refit fails. The refit is relaxed by the perspective prior only
-    where the video's views need it (`PerspectiveEvidence`): on tracked points, which are
-    placed twice as precisely, the relaxation would otherwise fit their errors."""
-    assert registration.points is not None and registration.H_cur_to_prev is not None
+    """The registration refitted on its inliers re-localised by tracking
+    (`pixel_refine.track_points`); it keeps its matches and inlier counts (what keyframe
+    promotion reads). Unchanged where too few points track or the refit fails. The refit is
+    relaxed by the perspective prior only where the video's views need it
+    (`PerspectiveEvidence`): on tracked points, which are placed twice as precisely, the
+    relaxation would otherwise fit their errors."""
+    assert registration.points is not None and registration.H_moving_to_fixed is not None
     xy_cur = registration.points[0]
     if len(xy_cur) > TRACK_MAX_POINTS:  # evenly through the list: spread over the frame
         xy_cur = xy_cur[np.linspace(0, len(xy_cur) - 1, TRACK_MAX_POINTS).round().astype(int)]
-    pred = apply_homography(registration.H_cur_to_prev, xy_cur.astype(np.float64))
+    pred = apply_homography(registration.H_moving_to_fixed, xy_cur.astype(np.float64))
     found, ok = track_points(
         features.texture, reference.texture, xy_cur, pred, config.registration.track_window_px
     )
@@ -227,7 +228,7 @@ def _tracked(
     perspective.tracked += 1
     return dataclasses.replace(
         registration,
-        H_cur_to_prev=refit.H_cur_to_prev,
+        H_moving_to_fixed=refit.H_moving_to_fixed,
         reproj_error_px=refit.reproj_error_px,
         model=refit.model,
         corner_sd_px=refit.corner_sd_px,
@@ -259,7 +260,7 @@ class ChainTracker:
         if self._prev is None:
             return Track(np.eye(3))
         matches, registration = _register(self._prev, features, self._config, timer, shape)
-        H = self._H_prev_to_ref @ registration.H_cur_to_prev if registration.ok else None
+        H = self._H_prev_to_ref @ registration.H_moving_to_fixed if registration.ok else None
         return Track(
             H, registration, matches, self._prev, attempts=1, reference_index=self._prev_index
         )
@@ -426,7 +427,7 @@ class KeyframeTracker:
                 if first is None:
                     first = Track(None, registration, matches, kf.features, kf.id)
                 continue
-            H = kf.H_to_ref @ registration.H_cur_to_prev
+            H = kf.H_to_ref @ registration.H_moving_to_fixed
             track = Track(H, registration, matches, kf.features, kf.id)
             if best is None or registration.n_inliers > best.registration.n_inliers:  # type: ignore[union-attr]
                 best = track
@@ -459,7 +460,7 @@ class KeyframeTracker:
         if previous is not None and previous.ok and self._prev is not None:
             # No keyframe registers, but the predecessor does: the frame keeps its place.
             self._lost = False
-            H = self._poses[self._prev[0]] @ previous.H_cur_to_prev
+            H = self._poses[self._prev[0]] @ previous.H_moving_to_fixed
             return Track(
                 H,
                 previous,
@@ -480,7 +481,7 @@ class KeyframeTracker:
     def _by_flow(self, features: Features, shape: tuple[int, int], timer: Any) -> Track | None:
         """A frame no keyframe nor its predecessor registers by descriptors (motion blur, a
         fast jump, a hazy view) placed by following the predecessor's keypoints into it with
-        optical flow (`refine.flow_points`), from where the last step's motion predicts them;
+        optical flow (`pixel_refine.flow_points`), from where the last step's motion predicts them;
         the model is fitted to the points that track there and back, under the same failure
         rules. It then becomes a keyframe, so the chain goes on through it."""
         registration_config = self._config.registration
@@ -492,8 +493,8 @@ class KeyframeTracker:
         xy_prev = prev.xy
         if len(xy_prev) > FLOW_MAX_POINTS:  # evenly through the list: spread over the frame
             xy_prev = xy_prev[np.linspace(0, len(xy_prev) - 1, FLOW_MAX_POINTS).round().astype(int)]
-        H_cur_to_prev = np.eye(3) if self._step is None else self._step  # constant velocity
-        pred = apply_homography(np.linalg.inv(H_cur_to_prev), xy_prev.astype(np.float64))
+        H_moving_to_fixed = np.eye(3) if self._step is None else self._step  # constant velocity
+        pred = apply_homography(np.linalg.inv(H_moving_to_fixed), xy_prev.astype(np.float64))
         window = registration_config.track_window_px or 31
         found, ok = timer.run(
             "estimate", flow_points, prev.texture, features.texture, xy_prev, pred, window
@@ -505,15 +506,16 @@ class KeyframeTracker:
         )
         if not registration.ok:
             return None
-        assert registration.H_cur_to_prev is not None
-        agreement = texture_agreement(prev.texture, features.texture, registration.H_cur_to_prev)
+        assert registration.H_moving_to_fixed is not None
+        H = registration.H_moving_to_fixed
+        agreement = texture_agreement(prev.texture, features.texture, H)
         log.info(
             "flow from frame %d: %d inliers, agreement %.3f",
             prev_index, registration.n_inliers, agreement,
         )  # fmt: skip
         if agreement < FLOW_MIN_AGREEMENT or not _peaks(agreement, prev, features, registration):
             return None
-        H = self._poses[prev_index] @ registration.H_cur_to_prev
+        H = self._poses[prev_index] @ registration.H_moving_to_fixed
         return Track(
             H, registration, None, prev, None, reference_index=prev_index, previous=registration,
             by_flow=True,
@@ -531,10 +533,10 @@ class KeyframeTracker:
             return False
         if self._keyframes[best.keyframe].frame_index == self._prev[0]:
             return False
-        assert best.registration is not None and previous.H_cur_to_prev is not None
+        assert best.registration is not None and previous.H_moving_to_fixed is not None
         if previous.n_inliers < best.registration.n_inliers:
             return False
-        by_previous = self._poses[self._prev[0]] @ previous.H_cur_to_prev
+        by_previous = self._poses[self._prev[0]] @ previous.H_moving_to_fixed
         return not self._agree(by_previous, best.H_frame_to_ref, shape)
 
     def _agree(self, H_a: np.ndarray, H_b: np.ndarray, shape: tuple[int, int]) -> bool:
@@ -558,8 +560,9 @@ class KeyframeTracker:
             kf = self._keyframes[k]
             if k == best.keyframe or not registration.ok or kf.frame_index == self._prev_index:
                 continue
-            assert registration.H_cur_to_prev is not None
-            if self._agree(kf.H_to_ref @ registration.H_cur_to_prev, best.H_frame_to_ref, shape):
+            assert registration.H_moving_to_fixed is not None
+            H = kf.H_to_ref @ registration.H_moving_to_fixed
+            if self._agree(H, best.H_frame_to_ref, shape):
                 links.append((kf.frame_index, registration))
         return tuple(links)
 
@@ -648,10 +651,10 @@ class KeyframeTracker:
         (its link would pull its neighbours' tilts there); after refinement it follows its
         keyframe. A blurred or hazy frame's registrations are the least precise."""
         assert track.H_frame_to_ref is not None and track.keyframe is not None
-        assert track.registration is not None and track.registration.H_cur_to_prev is not None
+        assert track.registration is not None and track.registration.H_moving_to_fixed is not None
         self._poses[index] = track.H_frame_to_ref
         kf = self._keyframes[track.keyframe]
-        self._leaves[index] = (kf.frame_index, track.registration.H_cur_to_prev)
+        self._leaves[index] = (kf.frame_index, track.registration.H_moving_to_fixed)
 
     def _weak(self, kf: Keyframe, registration: Registration) -> str | None:
         """Why the keyframe no longer holds (its registrations decay), or None."""
@@ -691,7 +694,7 @@ class KeyframeTracker:
         through the registration's inliers: they carry what a similarity per link leaves out.
         Otherwise the chosen model's prediction on a grid over a, weighted by how well that
         model is expected to place the frame."""
-        assert registration.H_cur_to_prev is not None
+        assert registration.H_moving_to_fixed is not None
         points = registration.points
         if self._tilted_graph and points is not None and len(points[0]) >= 4:
             pick = np.linspace(0, len(points[0]) - 1, min(len(points[0]), self.LINK_POINTS))
@@ -704,7 +707,9 @@ class KeyframeTracker:
         sd = registration.corner_sd_px
         weight = 1.0 / max(sd if np.isfinite(sd) else self.MIN_SD_PX, self.MIN_SD_PX)
         self._constraints.append(
-            Constraint(a, b, xy_a, apply_homography(registration.H_cur_to_prev, xy_a), loop, weight)
+            Constraint(
+                a, b, xy_a, apply_homography(registration.H_moving_to_fixed, xy_a), loop, weight
+            )
         )
 
     def _close_loops(self, new: Keyframe, registered_to: int, shape: tuple[int, int]) -> None:
@@ -786,10 +791,10 @@ def _peaks(
     """Is the two textures' agreement at the registration higher than with the placement
     moved FLOW_PEAK_PX along either axis (a placement, not a plateau)?"""
     assert reference.texture is not None and features.texture is not None
-    assert registration.H_cur_to_prev is not None
+    assert registration.H_moving_to_fixed is not None
     for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
         shift = np.array([[1.0, 0, dx * FLOW_PEAK_PX], [0, 1.0, dy * FLOW_PEAK_PX], [0, 0, 1.0]])
-        H = shift @ registration.H_cur_to_prev
+        H = shift @ registration.H_moving_to_fixed
         if texture_agreement(reference.texture, features.texture, H) >= agreement:
             return False
     return True

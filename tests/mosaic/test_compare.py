@@ -25,7 +25,7 @@ from mosaic.compare import (
 )
 from mosaic.config import Config
 from mosaic.features import FeatureExtractor
-from mosaic.refine import fixed_to_moving_map
+from mosaic.pixel_refine import fixed_to_moving_map
 from mosaic.registration import apply_homography
 from mosaic.synthetic.followup import MIN_CHANGE_PX, Change, plant_changes, source_to_mosaic
 from tests.conftest import SAMPLE_IMAGE, SHARED_DATA

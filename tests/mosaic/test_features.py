@@ -87,7 +87,7 @@ def test_register_pair_recovers_the_known_homography(pair, name, descriptor, max
     reg = register_pair(a, b, config, FeatureExtractor(config.features))
     assert reg.ok, reg.reason
     assert reg.n_inliers >= 20
-    assert corner_error(reg.H_cur_to_prev, H_b_to_a, (480, 320)) < max_error_px
+    assert corner_error(reg.H_moving_to_fixed, H_b_to_a, (480, 320)) < max_error_px
 
 
 def test_detect_scale_maps_points_back_to_frame_pixels():
@@ -165,7 +165,7 @@ def test_glampoints_extra_scale_registers_a_zoomed_pair(fundus):
         config = with_overrides(Config(), features={"detector": "glampoints", "extra_scale": extra})
         regs[extra] = register_pair(a, b, config, FeatureExtractor(config.features))
     assert regs[0.7].ok, regs[0.7].reason
-    assert corner_error(regs[0.7].H_cur_to_prev, H_b_to_a, (480, 320)) < 3.0
+    assert corner_error(regs[0.7].H_moving_to_fixed, H_b_to_a, (480, 320)) < 3.0
     assert regs[0.7].n_inliers > 2 * regs[0.0].n_inliers  # measured: 200 vs 59
 
 
@@ -215,7 +215,7 @@ def test_register_pair_of_large_images_answers_in_full_size_pixels(pair):
     )
     reg = register_pair(big_a, big_b, config, FeatureExtractor(config.features))
     assert reg.ok, reg.reason
-    assert corner_error(reg.H_cur_to_prev, H_big, (960, 640)) < 4.0  # 2 px at the small size
+    assert corner_error(reg.H_moving_to_fixed, H_big, (960, 640)) < 4.0  # 2 px at the small size
 
 
 @pytest.mark.parametrize("name", ["glampoints", "random-grid"])
@@ -234,7 +234,7 @@ def test_blank_images_do_not_register(fundus, name):
         (fundus, grey, "moving image"),
     ):
         registration = register_pair(a, b, config, extractor)
-        assert not registration.ok and registration.H_cur_to_prev is None
+        assert not registration.ok and registration.H_moving_to_fixed is None
         assert registration.reason == f"no textured keypoints in the {blank}"
     # the retina itself keeps its points
     assert len(extractor(prepare(fundus, config.preprocess))) > 100
@@ -302,7 +302,7 @@ def test_keypoints_keep_off_the_view_border_that_is_fixed_to_the_camera(fundus):
             )
             reg = estimate_motion(fb.xy[m.idx_b], fa.xy[m.idx_a], config.registration, (350, 660))
             # refused by the failure rules: not pulled (nan, left out of the mean)
-            error = np.abs(reg.H_cur_to_prev[:2, 2] - [11.0, -5.0]).max() if reg.ok else np.nan
+            error = np.abs(reg.H_moving_to_fixed[:2, 2] - [11.0, -5.0]).max() if reg.ok else np.nan
             errors[margin].append(float(error))
             if draw == 0:
                 if margin == 0:

@@ -729,7 +729,7 @@ def test_auto_refines_photographs_of_a_whole_retina_whatever_the_coarse_model(
         return
     assert reg.model == "quadratic" and reg.refined_levels == 3
     cp = pair.control_points
-    error = np.linalg.norm(apply_quadratic(reg.Q_cur_to_prev, cp[:, 2:]) - cp[:, :2], axis=1)
+    error = np.linalg.norm(apply_quadratic(reg.Q_moving_to_fixed, cp[:, 2:]) - cp[:, :2], axis=1)
     assert error.mean() < 1.0, error
 
 
@@ -758,7 +758,8 @@ def test_an_angiogram_is_registered_to_a_colour_photograph_once_inverted(
     cp = pair.control_points
     if not vessel_polarity:
         if reg.ok:
-            error = np.linalg.norm(apply_homography(reg.H_cur_to_prev, cp[:, 2:]) - cp[:, :2], 1)
+            mapped = apply_homography(reg.H_moving_to_fixed, cp[:, 2:])
+            error = np.linalg.norm(mapped - cp[:, :2], 1)
             assert error.mean() > 10.0
         assert reg.inverted == (False, False)
         return
@@ -769,9 +770,9 @@ def test_an_angiogram_is_registered_to_a_colour_photograph_once_inverted(
     same_kind = pairs.register_pair(pair.fixed, pair.moving, config, extractor, "auto")
     assert same_kind.ok and same_kind.inverted == (False, False) and len(calls) == 1
     mapped = (
-        apply_quadratic(reg.Q_cur_to_prev, cp[:, 2:])
-        if reg.Q_cur_to_prev is not None
-        else apply_homography(reg.H_cur_to_prev, cp[:, 2:])
+        apply_quadratic(reg.Q_moving_to_fixed, cp[:, 2:])
+        if reg.Q_moving_to_fixed is not None
+        else apply_homography(reg.H_moving_to_fixed, cp[:, 2:])
     )
     error = np.linalg.norm(mapped - cp[:, :2], axis=1)
     assert error.mean() < 1.0, error

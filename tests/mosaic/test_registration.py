@@ -25,14 +25,14 @@ def test_recovers_known_homography_despite_outliers(method):
     assert reg.n_matches == 200
     assert 130 <= reg.n_inliers <= 145
     assert not reg.inliers[:60].any() or reg.inliers[:60].sum() <= 2
-    assert corner_error(reg.H_cur_to_prev, H_true, (660, 350)) < 1.0
+    assert corner_error(reg.H_moving_to_fixed, H_true, (660, 350)) < 1.0
     assert reg.reproj_error_px < 1.0
 
 
 def test_too_few_matches_fails():
     xy = np.zeros((3, 2), np.float32)
     reg = estimate_homography(xy, xy, RegistrationConfig())
-    assert not reg.ok and reg.H_cur_to_prev is None
+    assert not reg.ok and reg.H_moving_to_fixed is None
     assert "few" in reg.reason
 
 
@@ -83,8 +83,8 @@ def test_similarity_chosen_when_inliers_cover_a_third_of_the_frame():
         assert reg.ok
         models.append(reg.model)
         assert 0.25 < reg.coverage < 0.36
-        err_auto.append(corner_error(reg.H_cur_to_prev, H_true, (660, 350)))
-        H_only = estimate_homography(cur, prev, RegistrationConfig()).H_cur_to_prev
+        err_auto.append(corner_error(reg.H_moving_to_fixed, H_true, (660, 350)))
+        H_only = estimate_homography(cur, prev, RegistrationConfig()).H_moving_to_fixed
         err_h.append(corner_error(H_only, H_true, (660, 350)))
     assert models.count("similarity") >= 6, models
     assert "homography" not in models, models
@@ -98,7 +98,7 @@ def test_homography_chosen_for_a_strong_perspective_seen_across_the_frame():
         reg = estimate_motion(cur, prev, RegistrationConfig(model="auto"), (350, 660))
         assert reg.ok and reg.model == "homography"
         assert reg.coverage > 0.85
-        assert corner_error(reg.H_cur_to_prev, H_true, (660, 350)) < 1.0
+        assert corner_error(reg.H_moving_to_fixed, H_true, (660, 350)) < 1.0
 
 
 @pytest.mark.parametrize("model", ["translation", "similarity", "affine", "homography"])
@@ -109,7 +109,7 @@ def test_a_forced_model_is_of_its_class(model):
     config = RegistrationConfig(model=model, perspective_prior=0.0)
     reg = estimate_motion(cur, prev, config, (350, 660))
     assert reg.ok and reg.model == model
-    H = reg.H_cur_to_prev
+    H = reg.H_moving_to_fixed
     if model != "homography":
         np.testing.assert_allclose(H[2], [0, 0, 1], atol=1e-12)
     if model in ("translation", "similarity"):
@@ -140,7 +140,7 @@ def _mean_corner_errors(rng, x_max, prior, perspective=(3e-5, -2e-5), trials=8):
         ):
             reg = estimate_motion(cur, prev, config, (350, 660))
             assert reg.ok and reg.model == config.model
-            errors[name].append(corner_error(reg.H_cur_to_prev, H_true, (660, 350)))
+            errors[name].append(corner_error(reg.H_moving_to_fixed, H_true, (660, 350)))
     return {k: float(np.median(v)) for k, v in errors.items()}
 
 
@@ -175,10 +175,10 @@ def test_perspective_evidence_tells_a_similarity_from_a_view_with_perspective():
         moved = cv2.perspectiveTransform(xy[None], H)[0] + rng.normal(0, 0.5, xy.shape)
         pure = estimate_motion(xy, moved, config, shape, relax=False)
         assert pure.ok and pure.model == "similarity"
-        np.testing.assert_allclose(pure.H_cur_to_prev[2, :2], 0.0, atol=1e-12)
+        np.testing.assert_allclose(pure.H_moving_to_fixed[2, :2], 0.0, atol=1e-12)
         found[name] = pure.perspective_evidence
         if name == "perspective":
             relaxed = estimate_motion(xy, moved, config, shape)
-            np.testing.assert_allclose(relaxed.H_cur_to_prev[2, :2], H[2, :2], rtol=0.2)
+            np.testing.assert_allclose(relaxed.H_moving_to_fixed[2, :2], H[2, :2], rtol=0.2)
     assert found["similarity"] < 2.0, found
     assert found["perspective"] > 10.0, found

@@ -88,5 +88,5 @@ def test_shipped_weights_register_a_known_pair_to_a_fraction_of_a_pixel(fundus):
     for model in ("auto", "homography"):
         registration = register_pair(fixed, moving, config, extractor, model)
         assert registration.ok and registration.n_inliers >= 200, registration
-        errors[model] = corner_error(registration.H_cur_to_prev, H_true, (400, 300))
+        errors[model] = corner_error(registration.H_moving_to_fixed, H_true, (400, 300))
     assert errors["homography"] < 0.3 and errors["auto"] < 1.0, errors

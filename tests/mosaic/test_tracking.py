@@ -303,7 +303,7 @@ def test_chain_steps_use_the_pure_model_and_keyframe_links_the_relaxed_one():
         tracker.commit(0, features(moved), shape, tracker.track(0, features(moved), shape, None))
         track = tracker.track(1, features(xy), shape, _NoTimer())
         assert track.registration is not None and track.registration.ok
-        steps[tracker.name] = track.registration.H_cur_to_prev
+        steps[tracker.name] = track.registration.H_moving_to_fixed
     np.testing.assert_allclose(steps["chain"][2, :2], 0.0, atol=1e-12)
     np.testing.assert_allclose(steps["keyframes"][2, :2], H_true[2, :2], rtol=0.2)
 
@@ -420,7 +420,7 @@ def test_tracked_inliers_register_blurred_realistic_pairs_more_precisely(fundus)
             found[window] = _register(b.features, a.features, config, _Timer, shape)[1]
         if all(r.ok for r in found.values()):
             for window, r in found.items():
-                errors[window].append(corner_error(r.H_cur_to_prev, true, params.size))
+                errors[window].append(corner_error(r.H_moving_to_fixed, true, params.size))
     assert len(errors[0]) >= 6
     assert np.median(errors[31]) < 0.8 * np.median(errors[0]), errors
 

@@ -186,8 +186,8 @@ def test_keypoints_classes_and_match_lines(run):
         assert inlier.sum() == entry["n_inliers"]
         # inlier segments join a keypoint to its match in the previous frame: the ground truth
         # homography maps one end onto the other (OpenCV coords = rerun coords - 0.5)
-        H_cur_to_prev = np.linalg.inv(gt[i - 1]) @ gt[i]
-        cur = np.hstack([strips[inlier, 0] - 0.5, np.ones((inlier.sum(), 1))]) @ H_cur_to_prev.T
+        H_moving_to_fixed = np.linalg.inv(gt[i - 1]) @ gt[i]
+        cur = np.hstack([strips[inlier, 0] - 0.5, np.ones((inlier.sum(), 1))]) @ H_moving_to_fixed.T
         err = np.linalg.norm(cur[:, :2] / cur[:, 2:] - (strips[inlier, 1] - 0.5), axis=1)
         assert np.median(err) < 1.5, (i, np.median(err))
 

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic.refine import level_scales, refine_pair, relocalise
+from mosaic.pixel_refine import level_scales, refine_pair, relocalise
 from mosaic.registration import apply_homography, apply_quadratic, robust_fit
 from mosaic.synthetic.curved import curved_pair
 
@@ -103,7 +103,7 @@ def test_tracking_places_points_on_a_blurred_noisy_view_better_than_their_predic
     """Points predicted ~1.5 px off (what keypoints achieve on magnified video) are moved to
     their true positions in a second view that is blurred, noisier, 20 % brighter and shifted
     by a similarity: median error under half the prediction's (measured 1.23 -> 0.43 px)."""
-    from mosaic.refine import lk_texture, track_points
+    from mosaic.pixel_refine import lk_texture, track_points
     from tests.helpers import crop_pair, similarity
 
     g = cv2.resize(fundus, None, fx=2.0, fy=2.0, interpolation=cv2.INTER_CUBIC)[..., 1]
@@ -125,7 +125,7 @@ def test_tracking_places_points_on_a_blurred_noisy_view_better_than_their_predic
 
 def test_tracking_leaves_out_points_it_cannot_place():
     """A featureless view gives no trackable window; a prediction far off is not moved there."""
-    from mosaic.refine import lk_texture, track_points
+    from mosaic.pixel_refine import lk_texture, track_points
 
     flat = np.full((200, 200), 90, np.uint8)
     xy = np.array([[100.0, 100.0], [50.0, 60.0]])
@@ -136,7 +136,7 @@ def test_tracking_leaves_out_points_it_cannot_place():
 def test_texture_is_flat_where_the_mask_has_no_retina_and_as_far_in_as_the_band_pass_reaches():
     """A burned-in overlay or the view's border is fixed to the camera: its texture must not
     pull the tracked points, so it is flat (128) there and up to 17 px inside the mask."""
-    from mosaic.refine import lk_texture
+    from mosaic.pixel_refine import lk_texture
 
     rng = np.random.default_rng(0)
     gray = cv2.GaussianBlur(rng.uniform(0, 255, (200, 300)).astype(np.float32), (0, 0), 2)
@@ -153,7 +153,7 @@ def test_texture_is_flat_where_the_mask_has_no_retina_and_as_far_in_as_the_band_
 def test_texture_band_pass_at_quarter_resolution_matches_the_full_gaussian(fundus):
     """The band-pass's wide blur, computed at 1/4 resolution, differs from the full-resolution
     Gaussian by ~1 % of the band-passed texture's spread (measured 1.1 %)."""
-    from mosaic.refine import TEXTURE_SIGMA_PX, _smooth
+    from mosaic.pixel_refine import TEXTURE_SIGMA_PX, _smooth
 
     fine, coarse = TEXTURE_SIGMA_PX
     g = cv2.GaussianBlur(fundus[..., 1].astype(np.float32), (0, 0), fine)
@@ -167,7 +167,7 @@ def test_octagon_erosion_is_the_disc_erosion_within_its_corners():
     """`_erode_by_octagon` stands in for the elliptic-kernel erosion in `lk_texture`: what it
     keeps lies more than the radius inside the mask, and it keeps all that lies 8 % further
     (its corners, at 1.082 radii) and half a pixel more."""
-    from mosaic.refine import _erode_by_octagon
+    from mosaic.pixel_refine import _erode_by_octagon
 
     yy, xx = np.mgrid[0:300, 0:400]
     mask = np.where(np.hypot(xx - 200, yy - 150) < 140, 255, 0).astype(np.uint8)
@@ -183,7 +183,7 @@ def test_overlap_homography_spreads_the_curvature_over_the_whole_overlap(pair):
     """Matches only on the left of the retina: the homography fitted to them is good there
     and poor on the right; the one fitted to the quadratic over the whole overlap has a much
     lower mean error over the overlap (exact truth of a curved pair; measured 3.3 -> 2.0 px)."""
-    from mosaic.refine import overlap_homography
+    from mosaic.pixel_refine import overlap_homography
 
     xy, truth = _points(pair, n=300)
     left = xy[:, 0] < 450
@@ -225,7 +225,7 @@ def test_each_answer_reports_its_own_residual(pair):
     matches (the curvature's pixels), the quadratic answer its own (a fraction of it), each
     equal to the residual computed from the answer and the truth."""
     from mosaic.config import RegistrationConfig
-    from mosaic.refine import fit_pair
+    from mosaic.pixel_refine import fit_pair
 
     xy, truth = _points(pair, n=200)
     H0, _ = cv2.findHomography(xy, truth, 0)
