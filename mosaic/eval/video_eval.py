@@ -54,7 +54,7 @@ from mosaic.registration import MODELS as MOTION_MODELS
 from mosaic.report import FAILED, REGISTERED, SKIPPED
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 from mosaic.runner import reread_frames as _reread
-from mosaic.synthetic.synth import gt_path_for, load_ground_truth
+from mosaic.synthetic.truth import gt_path_for, load_ground_truth
 
 log = logging.getLogger(__name__)
 

@@ -30,12 +30,8 @@ from mosaic.features import FeatureExtractor
 from mosaic.geometry import relative_homographies
 from mosaic.glampoints_cli import app as glampoints_app
 from mosaic.io import sample_image_path
-from mosaic.synthetic.synth import (
-    SynthParams,
-    gt_path_for,
-    load_ground_truth,
-    write_synthetic_video,
-)
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.truth import gt_path_for, load_ground_truth
 from tests.helpers import leaving_clip
 
 runner = CliRunner()

@@ -19,7 +19,8 @@ from mosaic.eval.fidelity import mean_mosaic_fidelity
 from mosaic.eval.video_eval import fidelity_reference, run_video_evaluation, source_path
 from mosaic.io import sample_image_path
 from mosaic.runner import reread_frames
-from mosaic.synthetic.synth import SynthParams, gt_path_for, write_synthetic_video
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.truth import gt_path_for
 
 runner = CliRunner()
 COLUMNS = ("fidelity", "good_area", "oracle_fidelity", "oracle_good_area")
