@@ -958,12 +958,9 @@ def evaluate(
 ) -> None:
     """Compare detectors and strategies on videos: frames until failure, accuracy vs
     VIDEO.gt.json, drift, speed; paired differences with bootstrap intervals."""
-    from mosaic.eval.evaluate import (
-        format_video_tables,
-        load_video_results,
-        parse_detectors,
-        run_video_evaluation,
-    )
+    from mosaic.eval.common import parse_detectors
+    from mosaic.eval.video_eval import run_video_evaluation
+    from mosaic.eval.video_tables import format_video_tables, load_video_results
 
     _setup_logging(verbose)
     with _user_errors(), logging_redirect_tqdm():

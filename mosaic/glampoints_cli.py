@@ -299,13 +299,9 @@ def evaluate(
 
     from mosaic.config import load_config, with_overrides
     from mosaic.errors import MosaicError
+    from mosaic.eval.common import parse_detectors
     from mosaic.eval.datasets import open_dataset
-    from mosaic.eval.evaluate import (
-        format_pair_tables,
-        parse_detectors,
-        run_pair_evaluation,
-        summarize_models,
-    )
+    from mosaic.eval.pair_eval import format_pair_tables, run_pair_evaluation, summarize_models
     from mosaic.features import FeatureExtractor
 
     _setup_logging(verbose)
@@ -339,7 +335,7 @@ def evaluate(
 def _score_answers(dataset: Path, fmt: str | None, answers: Path, out: Path) -> None:
     """`evaluate --answers`: the FIRE protocol of `mosaic register --pairs` answers."""
     from mosaic.errors import MosaicError
-    from mosaic.eval.evaluate import (
+    from mosaic.eval.pair_eval import (
         format_answer_table,
         read_answers,
         score_answers,

@@ -219,7 +219,7 @@ def score_vs_error(
 ) -> dict[str, Any]:
     """How a report's per-frame `quality` relates to the true error of its poses.
 
-    `gt`: H_frame_to_source per frame (`synth.load_ground_truth`); `frame_size` (w, h). Frames
+    `gt`: H_frame_to_source per frame (`truth.load_ground_truth`); `frame_size` (w, h). Frames
     of the report's first segment with a score are compared, against two errors:
     - `corner`: the corner error of inv(H_0_to_canvas) @ H_i_to_canvas against the truth, 0
       being the segment's first frame. It includes what the score cannot see: the drift of the

@@ -10,12 +10,8 @@ import cv2
 import numpy as np
 
 from mosaic.geometry import corner_error
-from mosaic.synthetic.synth import (
-    SynthParams,
-    gt_path_for,
-    load_ground_truth,
-    write_synthetic_video,
-)
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.truth import gt_path_for, load_ground_truth
 from tests.conftest import SAMPLE_IMAGE
 
 

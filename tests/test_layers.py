@@ -25,7 +25,7 @@ GLAMPOINTS_DOORS = {"mosaic.features", "mosaic.glampoints_cli"}
 
 
 def module_name(path: Path) -> str:
-    """`mosaic/eval/evaluate.py` -> `mosaic.eval.evaluate` (a package's `__init__` its own)."""
+    """`mosaic/eval/video_eval.py` -> `mosaic.eval.video_eval` (a package's `__init__` its own)."""
     parts = path.relative_to(REPO).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
@@ -81,10 +81,10 @@ def test_imported_modules_resolves_every_form():
     source = (
         "import mosaic.eval.bench as b\n"
         "from mosaic import synthetic\n"
-        "def f():\n    from .eval.evaluate import x\n"
+        "def f():\n    from .eval.video_eval import x\n"
     )
     names = imported_modules(source, "mosaic.quality")
-    assert {"mosaic.eval.bench", "mosaic.synthetic", "mosaic.eval.evaluate"} <= names
+    assert {"mosaic.eval.bench", "mosaic.synthetic", "mosaic.eval.video_eval"} <= names
 
 
 def test_runtime_stages_import_neither_eval_nor_synthetic():
@@ -107,7 +107,7 @@ def importers_of(sources: dict[str, str], package: str) -> set[str]:
 
 def test_at_most_two_mosaic_modules_import_glampoints():
     sources = package_sources("mosaic")
-    assert {"mosaic.features", "mosaic.eval.evaluate", "mosaic.synthetic.synth"} <= set(sources)
+    assert {"mosaic.features", "mosaic.eval.pair_eval", "mosaic.synthetic.synth"} <= set(sources)
     assert len(GLAMPOINTS_DOORS) <= 2
     assert importers_of(sources, "glampoints") == GLAMPOINTS_DOORS
     # the check catches a module that imports glampoints to catch its error

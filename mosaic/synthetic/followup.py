@@ -28,6 +28,7 @@ import numpy as np
 
 from mosaic.errors import InputError
 from mosaic.preprocess import estimate_fov_disc
+from mosaic.synthetic.truth import gt_path_for
 
 log = logging.getLogger(__name__)
 
@@ -211,8 +212,6 @@ def followup_hook(
 def load_baseline_gt(path: str | Path) -> dict[str, Any]:
     """The ground truth of a baseline video (its `.gt.json`, or the video it belongs to)."""
     import json
-
-    from mosaic.synthetic.synth import gt_path_for
 
     p = Path(path).expanduser()
     gt_path = p if p.suffix.lower() == ".json" else gt_path_for(p)

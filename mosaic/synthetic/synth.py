@@ -30,7 +30,6 @@ Used by the tests and benchmarks to measure registration error against the truth
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
@@ -54,11 +53,11 @@ from mosaic.io import (
 )
 from mosaic.preprocess import estimate_fov_disc
 from mosaic.preprocess import fov_distance as _fov_distance
+from mosaic.synthetic.truth import VIDEO_CODECS, gt_path_for
 
 log = logging.getLogger(__name__)
 
 _APERTURE_LEVEL = 2.0  # grey level of the dark border outside the simulated aperture
-_VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}
 _PSNR_MAX_FRAMES = 250  # frames kept in memory to measure the compression loss of a video file
 
 # Independent random streams (children of SeedSequence(seed)): switching one group of
@@ -741,13 +740,6 @@ def render_frames(
 # --------------------------------------------------------------------------------------------
 
 
-def gt_path_for(video_path: str | Path) -> Path:
-    """Ground-truth file of a synthetic video: `<video without suffix>.gt.json` beside it."""
-    p = Path(video_path).expanduser()
-    stem = p.name if p.is_dir() or p.suffix.lower() not in _VIDEO_CODECS else p.stem
-    return p.with_name(stem + ".gt.json")
-
-
 def pick_source(path: str | Path, seed: int) -> Path:
     """The source image of a video: `path` itself, or, for a folder of fundus images, the one
     the seed picks: the images in natural order, shuffled by a fixed permutation, taken at
@@ -824,7 +816,7 @@ def write_synthetic_video(
         raise OutputError(f"output folder does not exist: {out.parent}")
     suffix = out.suffix.lower()
     as_folder = out.is_dir() or suffix == ""
-    if not as_folder and suffix not in _VIDEO_CODECS:
+    if not as_folder and suffix not in VIDEO_CODECS:
         raise OutputError(
             f"unsupported video format '{out.suffix}' (use .mp4, .avi or a folder): {out}"
         )
@@ -835,7 +827,7 @@ def write_synthetic_video(
             _frame_folder(out)
         else:  # written beside it, renamed when whole: never half a video under its name
             tmp = stack.enter_context(atomic_path(out))
-            fourcc = cv2.VideoWriter.fourcc(*_VIDEO_CODECS[suffix])
+            fourcc = cv2.VideoWriter.fourcc(*VIDEO_CODECS[suffix])
             writer = cv2.VideoWriter(str(tmp), fourcc, params.fps, (w, h))
             if not writer.isOpened():
                 raise OutputError(f"cannot open video writer for {out}")
@@ -856,7 +848,7 @@ def write_synthetic_video(
         if writer is not None and (not tmp.is_file() or tmp.stat().st_size == 0):
             raise OutputError(f"video writer produced no file: {out}")
         compression = (
-            {"codec": _VIDEO_CODECS[suffix], "psnr_db": _psnr_db(rendered, tmp)}
+            {"codec": VIDEO_CODECS[suffix], "psnr_db": _psnr_db(rendered, tmp)}
             if writer is not None
             else {"codec": "png"}
         )
@@ -877,33 +869,10 @@ def write_synthetic_video(
     return gt_path
 
 
-def load_ground_truth(path: str | Path) -> list[np.ndarray]:
-    """`H_frame_to_source` per frame index from a `.gt.json` (or the video it belongs to)."""
-    p = Path(path).expanduser()
-    if p.suffix.lower() != ".json":
-        p = gt_path_for(p)
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-        frames = data["frames"]
-        by_index = {int(f["index"]): np.asarray(f["H_frame_to_source"], np.float64) for f in frames}
-    except FileNotFoundError as exc:
-        raise InputError(f"ground truth not found: {p}") from exc
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"malformed ground truth {p}: {exc}") from exc
-    if sorted(by_index) != list(range(len(by_index))) or not by_index:
-        raise InputError(f"malformed ground truth {p}: frame indices are not 0..N-1")
-    Hs = [by_index[i] for i in range(len(by_index))]
-    if any(H.shape != (3, 3) or not np.isfinite(H).all() for H in Hs):
-        raise InputError(f"malformed ground truth {p}: a homography is not a finite 3x3 matrix")
-    return Hs
-
-
 __all__ = [
     "SynthParams",
     "estimate_fov_disc",
-    "gt_path_for",
     "lens_rim_truth",
-    "load_ground_truth",
     "pick_source",
     "plan_trajectory",
     "render_frames",

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 import mosaic.cli
 from mosaic import preprocess
 from mosaic.cli import app
-from mosaic.synthetic.synth import load_ground_truth
+from mosaic.synthetic.truth import load_ground_truth
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import corner_error, crop_pair, leaving_clip, similarity
 

@@ -16,7 +16,8 @@ from mosaic.geometry import scale_matrix
 from mosaic.io import Frame, Lookahead, open_frames
 from mosaic.pipeline import MosaicBuilder, MosaicResult
 from mosaic.scheduling import OverlapTrial, Turns
-from mosaic.synthetic.synth import SynthParams, load_ground_truth, write_synthetic_video
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.truth import load_ground_truth
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import (
     build_from_folder,

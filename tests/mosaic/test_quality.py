@@ -15,12 +15,8 @@ from mosaic.config import ComposeConfig, Config, PreprocessConfig, with_override
 from mosaic.io import open_frames
 from mosaic.preprocess import prepare
 from mosaic.quality import agreement, frame_vs_canvas, score_vs_error, shift_response
-from mosaic.synthetic.synth import (
-    SynthParams,
-    load_ground_truth,
-    render_frames,
-    write_synthetic_video,
-)
+from mosaic.synthetic.synth import SynthParams, render_frames, write_synthetic_video
+from mosaic.synthetic.truth import load_ground_truth
 from tests.conftest import SAMPLE_IMAGE
 from tests.helpers import build_from_folder
 

@@ -19,7 +19,7 @@ import pytest
 from glampoints.detector import DEFAULT_WEIGHTS
 from mosaic.config import Config
 from mosaic.eval.datasets import load_synthetic
-from mosaic.eval.evaluate import run_pair_evaluation
+from mosaic.eval.pair_eval import run_pair_evaluation
 from mosaic.features import FeatureExtractor
 from mosaic.pairs import register_pair
 from tests.conftest import SHARED_DATA

@@ -19,7 +19,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mosaic.cli import app
-from mosaic.synthetic.synth import load_ground_truth
+from mosaic.synthetic.truth import load_ground_truth
 from mosaic.viz import (
     INLIER,
     OUTLIER,

@@ -20,13 +20,12 @@ from mosaic.synthetic.synth import (
     _LensRim,
     _line_kernel,
     estimate_fov_disc,
-    gt_path_for,
-    load_ground_truth,
     pick_source,
     plan_trajectory,
     render_frames,
     write_synthetic_video,
 )
+from mosaic.synthetic.truth import gt_path_for, load_ground_truth
 
 SIZE = (240, 160)
 CLEAN = {"nuisances": False, "aperture": False}
@@ -197,15 +196,6 @@ def test_errors(tmp_path):
         SynthParams(scale_range=(1.2, 1.0))
     with pytest.raises(ConfigError, match="n_frames"):
         SynthParams(n_frames=0)
-    bad = tmp_path / "bad.gt.json"
-    bad.write_text(json.dumps({"frames": [{"index": 1, "H_frame_to_source": np.eye(3).tolist()}]}))
-    with pytest.raises(InputError, match="malformed"):
-        load_ground_truth(bad)
-    bad.write_text("{not json")
-    with pytest.raises(InputError, match="malformed"):
-        load_ground_truth(bad)
-    with pytest.raises(InputError, match="not found"):
-        load_ground_truth(tmp_path / "absent.gt.json")
 
 
 def test_hard_video_revisits_and_blurs(fundus):

@@ -15,15 +15,12 @@ from typer.testing import CliRunner
 
 from mosaic.cli import app as mosaic_app
 from mosaic.config import Config
-from mosaic.eval.evaluate import (
-    _reread,
-    fidelity_reference,
-    run_video_evaluation,
-    source_path,
-)
 from mosaic.eval.fidelity import mean_mosaic_fidelity
+from mosaic.eval.video_eval import fidelity_reference, run_video_evaluation, source_path
 from mosaic.io import sample_image_path
-from mosaic.synthetic.synth import SynthParams, gt_path_for, write_synthetic_video
+from mosaic.runner import reread_frames
+from mosaic.synthetic.synth import SynthParams, write_synthetic_video
+from mosaic.synthetic.truth import gt_path_for
 
 runner = CliRunner()
 COLUMNS = ("fidelity", "good_area", "oracle_fidelity", "oracle_good_area")
@@ -54,7 +51,7 @@ def _copy_with_source(clip, folder, source: str | None):
 
 def test_evaluate_reports_fidelity_next_to_the_oracle(clip, tmp_path, caplog):
     out = tmp_path / "out"
-    with caplog.at_level(logging.INFO, logger="mosaic.eval.evaluate"):
+    with caplog.at_level(logging.INFO, logger="mosaic.eval.video_eval"):
         results, _ = run_video_evaluation([clip], Config(), ["sift"], out)
     assert [r.detector for r in results] == ["sift/keyframes", "sift/chain"]
     oracles = [m for m in caplog.messages if m.startswith("oracle of")]
@@ -75,7 +72,7 @@ def test_evaluate_reports_fidelity_next_to_the_oracle(clip, tmp_path, caplog):
     for i, G in enumerate(reference.truth):
         dx, dy = rng.normal(0.0, 4.0, 2)
         misposed[i] = G0_inv @ G @ np.array([[1, 0, dx], [0, 1, dy], [0, 0, 1.0]])
-    frames = _reread(clip, 1, 0)()
+    frames = reread_frames(clip, 1, 0)()
     bad = mean_mosaic_fidelity(frames, misposed, reference.truth, reference.source)
     assert bad.fidelity < keyframes.oracle_fidelity - 0.15
 
@@ -99,7 +96,7 @@ def test_relative_source_is_found_beside_the_ground_truth(clip, tmp_path):
 
 def test_missing_source_gives_nan_and_one_warning(clip, tmp_path, caplog):
     video = _copy_with_source(clip, tmp_path / "gone", "no/such/photo.jpg")
-    with caplog.at_level(logging.WARNING, logger="mosaic.eval.evaluate"):
+    with caplog.at_level(logging.WARNING, logger="mosaic.eval.video_eval"):
         results, _ = run_video_evaluation([video], Config(), ["sift"], tmp_path / "out")
     warnings = [m for m in caplog.messages if "no fidelity scores" in m]
     assert len(warnings) == 1 and "photo.jpg" in warnings[0]
