@@ -53,6 +53,11 @@ def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> 
     return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
+def translation(tx: float, ty: float) -> np.ndarray:
+    """3x3 float64 translation matrix by (tx, ty) pixels."""
+    return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty], [0.0, 0.0, 1.0]])
+
+
 def frame_normaliser(shape: tuple[int, int]) -> np.ndarray:
     """A similarity taking frame pixels to coordinates centred on the frame, unit half-diagonal
     (keeps each model class: a similarity stays a similarity)."""
@@ -101,4 +106,5 @@ __all__ = [
     "relative_homographies",
     "rescaled",
     "scale_matrix",
+    "translation",
 ]

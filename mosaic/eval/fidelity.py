@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from mosaic.compose import Canvas
+from mosaic.canvas import Canvas
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
 from mosaic.preprocess import erode_by_disc
