@@ -45,8 +45,8 @@ from mosaic.features import FeatureExtractor
 from mosaic.features import paper_metrics as gm
 from mosaic.io import atomic_path, make_folder, write_json
 from mosaic.matching import distance_matrix, match_descriptors
+from mosaic.pixel_refine import fit_pair
 from mosaic.preprocess import prepare, retina_disc, scale_matrix
-from mosaic.refine import fit_pair
 from mosaic.registration import apply_homography, apply_quadratic, estimate_homography
 
 log = logging.getLogger(__name__)
@@ -54,8 +54,9 @@ log = logging.getLogger(__name__)
 EPS_PX = 3.0  # correctness radius of a keypoint / match (paper: 3 px)
 FIRE_SCALE = 0.15  # the paper's FIRE protocol: 2912 px images downscaled to 15 % for detection
 CLASSES = ("failed", "inaccurate", "acceptable")
-# FIRE pairs: the final fit of `mosaic register` (`refine.fit_pair`) on the coarse inliers, per
-# motion model and with or without the coarse-to-fine refinement: name -> (model, refined)
+# FIRE pairs: the final fit of `mosaic register` (`pixel_refine.fit_pair`) on the coarse
+# inliers, per motion model and with or without the coarse-to-fine refinement:
+# name -> (model, refined)
 FIRE_VARIANTS = {
     "hom": ("homography", False),
     "hom+refine": ("homography", True),
@@ -212,7 +213,7 @@ def evaluate_pair(
             correct = gm.true_positive_mask(f1.xy[in1], f2.xy[in2][nearest], H, EPS_PX)
             auc = gm.nndr_auc(ratio, correct)
 
-    scores = _registration_scores(pair, reg.H_cur_to_prev, S1, S2, shape1)
+    scores = _registration_scores(pair, reg.H_moving_to_fixed, S1, S2, shape1)
     status, mee, mae, rms, error_px, H_full = scores if reg.ok else _FAILED_SCORES
     variant_error_px: dict[str, float] = {}
     variant_s: dict[str, float] = {}
@@ -265,8 +266,9 @@ def fire_variants(
     """The FIRE error (px, inf when the coarse registration failed) and the seconds of each
     FIRE_VARIANTS fit, all from the same coarse inliers (`inliers`: image 1's and image 2's
     points, full resolution) and homography: image 2 (moving) is fitted into image 1 (fixed)
-    as `mosaic register` does (`refine.fit_pair`, `config.refine_levels` levels when refined;
-    none are run when it is 0), and the control points of image 2 are mapped into image 1."""
+    as `mosaic register` does (`pixel_refine.fit_pair`, `config.refine_levels` levels when
+    refined; none are run when it is 0), and the control points of image 2 are mapped into
+    image 1."""
     assert pair.control_points is not None
     variants = {
         name: spec
