@@ -39,7 +39,7 @@ import numpy as np
 from mosaic.config import Config, for_photographs
 from mosaic.errors import InputError, MosaicError
 from mosaic.features import FeatureExtractor
-from mosaic.geometry import apply_homography, apply_quadratic, quadratic_terms
+from mosaic.geometry import apply_homography, apply_quadratic, pixel_scale, quadratic_terms
 from mosaic.io import (
     IMAGE_READ_SUFFIXES,
     make_folder,
@@ -411,11 +411,6 @@ class _Aligned:
     correlation: float
 
 
-def _pixel_scale(k: float) -> np.ndarray:
-    """The map of pixels into an image resized by `k` (`cv2.resize`: pixel centres)."""
-    return np.array([[k, 0, 0.5 * k - 0.5], [0, k, 0.5 * k - 0.5], [0, 0, 1.0]])
-
-
 def _resized(image: np.ndarray, mask: np.ndarray, k: float) -> np.ndarray:
     """The image, black outside `mask`, resized by `k`."""
     image = np.where(mask[..., None], image, 0).astype(np.uint8)
@@ -458,7 +453,7 @@ def _rescaled(
     H: np.ndarray, Q: np.ndarray | None, kb: float, kf: float, shape: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """A registration of the visits resized by (kb, kf) in the visits' own pixels."""
-    Sb, Sf = _pixel_scale(kb), _pixel_scale(kf)
+    Sb, Sf = pixel_scale(kb), pixel_scale(kf)
     H = np.linalg.inv(Sb) @ H @ Sf
     if Q is None:
         return H / H[2, 2], None

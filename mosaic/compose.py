@@ -19,7 +19,7 @@ import numpy as np
 
 from mosaic.canvas import Canvas, CanvasPlanes
 from mosaic.config import ComposeConfig
-from mosaic.geometry import scale_matrix
+from mosaic.geometry import pixel_scale, scale_matrix
 from mosaic.photometry import (
     DARK,
     SATURATED,
@@ -93,7 +93,7 @@ class _ShadingMosaic:
             self._terms = (image.shape, shading_terms(*normalised_grid(image.shape, size)))
         terms = self._terms[1]
         k = factor  # reference pixels per cell of the low-resolution mosaic
-        K = np.array([[1 / k, 0, 0.5 / k - 0.5], [0, 1 / k, 0.5 / k - 0.5], [0, 0, 1.0]])
+        K = pixel_scale(1 / k)
         M = (
             K
             @ np.asarray(H_frame_to_ref, np.float64)

@@ -53,6 +53,12 @@ def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> 
     return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
+def pixel_scale(s: float) -> np.ndarray:
+    """H of a resize by the factor `s` (3x3 float64): pixel centres map as x' = (x + 0.5) s - 0.5,
+    as `cv2.resize` samples."""
+    return np.array([[s, 0.0, 0.5 * s - 0.5], [0.0, s, 0.5 * s - 0.5], [0.0, 0.0, 1.0]])
+
+
 def translation(tx: float, ty: float) -> np.ndarray:
     """3x3 float64 translation matrix by (tx, ty) pixels."""
     return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty], [0.0, 0.0, 1.0]])

@@ -31,7 +31,7 @@ from mosaic.compose import (
     weights_from_small,
 )
 from mosaic.config import ComposeConfig
-from mosaic.geometry import scale_matrix, translation
+from mosaic.geometry import pixel_scale, scale_matrix, translation
 from mosaic.io import Lookahead
 from mosaic.photometry import (
     SATURATED,
@@ -142,7 +142,7 @@ class _Grid:
     def from_small(self, H: np.ndarray, frame_shape: tuple[int, int], small: tuple[int, int]):
         """H from the cells of a frame resized to `small` (w, h) into this grid's cells."""
         k = self.factor
-        S = np.array([[1 / k, 0, 0.5 / k - 0.5], [0, 1 / k, 0.5 / k - 0.5], [0, 0, 1.0]])
+        S = pixel_scale(1 / k)
         to_frame = np.linalg.inv(scale_matrix(frame_shape, small[::-1]))
         return S @ translation(-float(self.x0), -float(self.y0)) @ H @ to_frame
 

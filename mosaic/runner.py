@@ -47,6 +47,7 @@ from mosaic.io import (
     FrameSource,
     VideoInfo,
     check_output_path,
+    expected_frames,
     open_frames,
     write_image,
     write_json,
@@ -72,14 +73,6 @@ def is_frame_folder(path: Path) -> bool:
     return path.is_dir() and any(
         f.suffix.lower() in IMAGE_READ_SUFFIXES and f.is_file() for f in path.iterdir()
     )
-
-
-def expected_frames(info: VideoInfo, step: int, max_frames: int) -> int | None:
-    """Frames a run will read (after `step` and `max_frames`), None if the input does not say."""
-    if info.n_frames is None:
-        return max_frames or None
-    n = -(-info.n_frames // step)
-    return min(n, max_frames) if max_frames else n
 
 
 def reread_frames(
