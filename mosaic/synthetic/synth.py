@@ -297,6 +297,68 @@ def _touch_rim(
     return path + shifts[max(n_ok - 1, 0)] * u
 
 
+def _view_maps(
+    rng: np.random.Generator, params: SynthParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each frame's map into the source before its centre is placed, A = R S P T(-frame
+    centre) (n, 3, 3): a slowly turning, zooming and tilting view; with its zoom (n,) and the
+    relative speed of the centre between frames (n - 1,)."""
+    n = params.n_frames
+    w, h = params.size
+    t = np.linspace(0.0, 1.0, n)
+    angle = np.deg2rad(params.rotation_deg) / 2 * _smooth_signal(rng, t)
+    lo, hi = np.log(params.scale_range[0]), np.log(params.scale_range[1])
+    zoom = np.exp((lo + hi) / 2 + (hi - lo) / 2 * _smooth_signal(rng, t))
+    tilt = params.perspective * np.stack([_smooth_signal(rng, t), _smooth_signal(rng, t)], 1)
+    speed_signal = _smooth_signal(rng, t[:-1]) if n > 2 else np.zeros(max(n - 1, 0))
+    speed = 1.0 + params.speed_variation * speed_signal
+    c, s = np.cos(angle), np.sin(angle)
+    A = np.zeros((n, 3, 3))
+    A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1] = c, -s, s, c
+    A[:, :2, :2] /= zoom[:, None, None]
+    A[:, 2, 2] = 1.0
+    P = np.tile(np.eye(3), (n, 1, 1))
+    P[:, 2, :2] = tilt
+    return A @ P @ _translation(-(w - 1) / 2, -(h - 1) / 2), zoom, speed
+
+
+def _centre_steps(params: SynthParams, speed: np.ndarray, tremor: np.ndarray) -> np.ndarray:
+    """The centre's step between frames (n - 1,) in frame px: the relative `speed` scaled to
+    `max_step_px`, with bursts of fast motion, hand `tremor` and the step range applied."""
+    n = params.n_frames
+    steps = params.max_step_px * speed / speed.mean() if n > 1 else np.zeros(0)
+    hard_rng = _stream(params.seed, _HARD_GEOMETRY)
+    if params.fast_motion_prob > 0 and n > 1:
+        starts = np.flatnonzero(hard_rng.random(n - 1) < params.fast_motion_prob)
+        for start in starts:
+            steps[start : start + int(hard_rng.integers(3, 6))] *= params.fast_motion_factor
+    if params.step_jitter > 0:
+        steps = steps * tremor
+    if params.step_range_px is not None:
+        steps = np.clip(steps, *params.step_range_px)
+    return steps
+
+
+def _revisiting_path(
+    rng: np.random.Generator,
+    steps: np.ndarray,
+    radius: float,
+    n: int,
+    side_px: float,
+    base: float,
+) -> np.ndarray:
+    """Out along the first half of the path, back along it shifted sideways by `side_px`
+    frame px (`base` source px each): the way back overlaps the way out only partly."""
+    half = (n + 1) // 2
+    out_path = _centre_path(rng, steps[: half - 1], radius)
+    direction = np.gradient(out_path, axis=0)
+    normal = np.stack([-direction[:, 1], direction[:, 0]], 1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
+    back = (out_path + normal * side_px * base)[::-1][: n - half]
+    path = np.concatenate([out_path, back])
+    return path * min(1.0, radius / max(np.linalg.norm(path, axis=1).max(), 1e-9))
+
+
 def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
     """Ground truth `H_frame_to_source` (N, 3, 3) of a smooth path inside the source's view.
 
@@ -315,23 +377,7 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
     cx, cy, r_fov = estimate_fov_disc(source)
     margin = max(4.0, 0.02 * r_fov)
     rng = _stream(params.seed, _GEOMETRY)
-    t = np.linspace(0.0, 1.0, n)
-    angle = np.deg2rad(params.rotation_deg) / 2 * _smooth_signal(rng, t)
-    lo, hi = np.log(params.scale_range[0]), np.log(params.scale_range[1])
-    zoom = np.exp((lo + hi) / 2 + (hi - lo) / 2 * _smooth_signal(rng, t))
-    tilt = params.perspective * np.stack([_smooth_signal(rng, t), _smooth_signal(rng, t)], 1)
-    speed_signal = _smooth_signal(rng, t[:-1]) if n > 2 else np.zeros(max(n - 1, 0))
-    speed = 1.0 + params.speed_variation * speed_signal
-
-    # Frame-to-source map without the final translation: A = R S P T(-frame centre).
-    c, s = np.cos(angle), np.sin(angle)
-    A = np.zeros((n, 3, 3))
-    A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1] = c, -s, s, c
-    A[:, :2, :2] /= zoom[:, None, None]
-    A[:, 2, 2] = 1.0
-    P = np.tile(np.eye(3), (n, 1, 1))
-    P[:, 2, :2] = tilt
-    A = A @ P @ _translation(-(w - 1) / 2, -(h - 1) / 2)
+    A, zoom, speed = _view_maps(rng, params)
     corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
     mapped = corners @ A.transpose(0, 2, 1)
     reach = float(np.linalg.norm(mapped[..., :2] / mapped[..., 2:], axis=-1).max())
@@ -352,17 +398,7 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
     A[:, :2, :] *= base  # scales the mapped x, y (not w) of every point by `base`
     reach *= base
 
-    # Centre motion in source px: frame-px speed times the frame's source-px-per-frame-px.
-    steps = params.max_step_px * speed / speed.mean() if n > 1 else np.zeros(0)
-    hard_rng = _stream(params.seed, _HARD_GEOMETRY)
-    if params.fast_motion_prob > 0 and n > 1:
-        starts = np.flatnonzero(hard_rng.random(n - 1) < params.fast_motion_prob)
-        for start in starts:
-            steps[start : start + int(hard_rng.integers(3, 6))] *= params.fast_motion_factor
-    if params.step_jitter > 0:
-        steps = steps * tremor
-    if params.step_range_px is not None:
-        steps = np.clip(steps, *params.step_range_px)
+    steps = _centre_steps(params, speed, tremor)
     steps = steps * base / np.sqrt(zoom[:-1] * zoom[1:]) if n > 1 else steps
     radius = r_fov - margin - reach * (1.0 - params.rim_overlap)  # then shifted to the rim
     if radius <= 0:
@@ -371,17 +407,7 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
             f"at {1 / base:.2f}x magnification"
         )
     if params.revisit and n > 3:
-        # Out along the first half of the path, back along it shifted sideways by a third of
-        # the frame height: the way back overlaps the way out only partly.
-        half = (n + 1) // 2
-        out_path = _centre_path(rng, steps[: half - 1], radius)
-        direction = np.gradient(out_path, axis=0)
-        normal = np.stack([-direction[:, 1], direction[:, 0]], 1)
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
-        offset = normal * (h / 3) * base
-        back = (out_path + offset)[::-1][: n - half]
-        path = np.concatenate([out_path, back])
-        path *= min(1.0, radius / max(np.linalg.norm(path, axis=1).max(), 1e-9))
+        path = _revisiting_path(rng, steps, radius, n, h / 3, base)
     else:
         path = _centre_path(rng, steps, radius)
     if params.rim_overlap > 0:
@@ -637,6 +663,54 @@ class _RealisticNuisances:
         return cls(gain, gamma, np.maximum(noise, 0.0), streak, defocus, glare)
 
 
+@dataclass(frozen=True)
+class _Illumination:
+    """The light a frame gets: a drifting gain, a colour tint and a vignette whose strength
+    and centre wander (smooth signals over the video)."""
+
+    gain: np.ndarray  # (n,)
+    tint: np.ndarray  # (n, 3)
+    vignette: np.ndarray  # (n,) darkening at the frame's corners
+    centre: np.ndarray  # (n, 2) the vignette's centre, px from the frame centre
+    xx: np.ndarray  # (h, w) float32 px from the frame centre
+    yy: np.ndarray
+    r2_scale: float  # 1 / the squared half-diagonal
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, t: np.ndarray, params: SynthParams) -> _Illumination:
+        w, h = params.size
+        gain = 1.0 + params.gain_drift * _smooth_signal(rng, t)
+        tint = 1.0 + 0.04 * np.stack([_smooth_signal(rng, t) for _ in range(3)], 1)
+        vignette = params.vignette + params.vignette_variation * _smooth_signal(rng, t)
+        centre = np.stack([_smooth_signal(rng, t) * 0.15 * w, _smooth_signal(rng, t) * 0.15 * h], 1)
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        xx -= (w - 1) / 2
+        yy -= (h - 1) / 2
+        return cls(gain, tint, vignette, centre, xx, yy, 1.0 / ((w / 2) ** 2 + (h / 2) ** 2))
+
+    def factor(self, i: int, real_gain: float) -> np.ndarray:
+        """(h, w, 3) factor of frame i's light (`real_gain`: the realistic video's own gain)."""
+        r2 = (self.xx - self.centre[i, 0]) ** 2 + (self.yy - self.centre[i, 1]) ** 2
+        light = self.gain[i] * real_gain * (1.0 - self.vignette[i] * (r2 * self.r2_scale))
+        return light[..., None] * self.tint[i].astype(np.float32)
+
+
+def _optical_blur(
+    frame: np.ndarray, optics_px: float, streak: np.ndarray, defocus_px: float
+) -> np.ndarray:
+    """Optics, motion (a `streak` of (length, angle)) and defocus blur the scene before the
+    sensor (float32)."""
+    img = frame.astype(np.float32)
+    if optics_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), optics_px)
+    length, angle = streak
+    if length >= 1.0:
+        img = cv2.filter2D(img, -1, _line_kernel(length, angle))
+    if defocus_px >= 0.5:
+        img = cv2.filter2D(img, -1, _disc_kernel(defocus_px))
+    return img
+
+
 def render_frames(
     source: np.ndarray, params: SynthParams
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -653,17 +727,7 @@ def render_frames(
     dust = _dust(params)
     rim = _LensRim.draw(params)
     burst_left = 0
-    if params.nuisances:
-        gain = 1.0 + params.gain_drift * _smooth_signal(rng, t)
-        tint = 1.0 + 0.04 * np.stack([_smooth_signal(rng, t) for _ in range(3)], 1)
-        vignette = params.vignette + params.vignette_variation * _smooth_signal(rng, t)
-        vig_centre = np.stack(
-            [_smooth_signal(rng, t) * 0.15 * w, _smooth_signal(rng, t) * 0.15 * h], 1
-        )
-        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-        xx -= (w - 1) / 2
-        yy -= (h - 1) / 2
-        r2_scale = 1.0 / ((w / 2) ** 2 + (h / 2) ** 2)
+    light = _Illumination.draw(rng, t, params) if params.nuisances else None
 
     def view(H_frame_to_source: np.ndarray) -> np.ndarray:
         return cv2.warpPerspective(
@@ -676,16 +740,7 @@ def render_frames(
         )
 
     def blurred(frame: np.ndarray, i: int) -> np.ndarray:
-        """Optics, motion and defocus blur the scene before the sensor."""
-        img = frame.astype(np.float32)
-        if params.optics_blur_px > 0:
-            img = cv2.GaussianBlur(img, (0, 0), params.optics_blur_px)
-        length, angle = real.streak[i]
-        if length >= 1.0:
-            img = cv2.filter2D(img, -1, _line_kernel(length, angle))
-        if real.defocus_px[i] >= 0.5:
-            img = cv2.filter2D(img, -1, _disc_kernel(real.defocus_px[i]))
-        return img
+        return _optical_blur(frame, params.optics_blur_px, real.streak[i], real.defocus_px[i])
 
     for i, H_frame_to_source in enumerate(H_all):
         frame = view(H_frame_to_source)
@@ -700,10 +755,8 @@ def render_frames(
         img = blurred(frame, i) if params.nuisances else frame.astype(np.float32)
         if second is not None:  # the sensor reads the odd rows from the second field
             img[1::2] = (blurred(second, i) if params.nuisances else second)[1::2]
-        if params.nuisances:
-            r2 = ((xx - vig_centre[i, 0]) ** 2 + (yy - vig_centre[i, 1]) ** 2) * r2_scale
-            light = gain[i] * real.gain[i] * (1.0 - vignette[i] * r2)
-            img *= light[..., None] * tint[i].astype(np.float32)
+        if light is not None:
+            img *= light.factor(i, real.gain[i])
         if rim is not None:
             img = rim.apply(img, i)
         if dust is not None:
