@@ -154,8 +154,9 @@ def frame_grid(frame_size: tuple[int, int], n: int = GRID_POINTS) -> np.ndarray:
     return np.stack([xs.ravel(), ys.ravel()], axis=1)
 
 
-def _normaliser(xy: np.ndarray) -> np.ndarray:
-    """Hartley's normalisation: centroid to 0, mean distance to it sqrt(2)."""
+def _hartley_normaliser(xy: np.ndarray) -> np.ndarray:
+    """Hartley's normalisation of a point cloud: centroid to 0, mean distance to it sqrt(2)
+    (not `geometry.frame_normaliser`, which a frame's shape fixes)."""
     centre = xy.mean(axis=0)
     spread = float(np.linalg.norm(xy - centre, axis=1).mean())
     s = math.sqrt(2.0) / max(spread, 1e-12)
@@ -174,7 +175,7 @@ def fit_homography(
     src, dst = np.asarray(src_xy, np.float64), np.asarray(dst_xy, np.float64)
     if len(src) < 4 or src.shape != dst.shape:
         raise ValueError(f"need >= 4 point pairs of equal shape, got {src.shape}, {dst.shape}")
-    T_src, T_dst = _normaliser(src), _normaliser(dst)
+    T_src, T_dst = _hartley_normaliser(src), _hartley_normaliser(dst)
     H0, _ = cv2.findHomography(src, dst, 0)  # least squares: the start
     if H0 is None:
         raise ValueError("degenerate point pairs: no homography")
@@ -220,7 +221,9 @@ def _translation(tx: float, ty: float) -> np.ndarray:
     return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty], [0.0, 0.0, 1.0]])
 
 
-def _frame_corners(frame_size: tuple[int, int]) -> np.ndarray:
+def _pixel_centre_corners(frame_size: tuple[int, int]) -> np.ndarray:
+    """The centres of a (width, height) frame's corner pixels, (0, 0) to (w - 1, h - 1) (not
+    `geometry.frame_corners`, the outline: (0, 0) to (w, h))."""
     w, h = frame_size
     return np.array([[0.0, 0.0], [w - 1.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0]])
 
@@ -229,7 +232,7 @@ def _footprint_corners(
     H_frames_to_canvas: Sequence[np.ndarray], frame_size: tuple[int, int]
 ) -> list[np.ndarray]:
     """Each frame's four corners in the canvas; frames sent (partly) to infinity are left out."""
-    corners = np.c_[_frame_corners(frame_size), np.ones(4)]
+    corners = np.c_[_pixel_centre_corners(frame_size), np.ones(4)]
     out = []
     for H in H_frames_to_canvas:
         mapped = corners @ np.asarray(H, np.float64).T
