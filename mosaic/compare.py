@@ -231,7 +231,8 @@ def load_visit(
         if not run.complete or run.result.main is None:
             raise InputError(f"the {name} video gave no mosaic: {run.error or 'interrupted'}")
         image = run.result.main.image
-        return Visit(name, path, "video", image, covered_area(image, run.report), outputs.report)
+        covered = covered_area(image, run.report.to_dict())  # the report as its JSON
+        return Visit(name, path, "video", image, covered, outputs.report)
     if suffix not in IMAGE_READ_SUFFIXES:
         raise InputError(f"{name} must be a video, a frame folder or an image: {path}")
     image = read_image(path)

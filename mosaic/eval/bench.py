@@ -144,10 +144,10 @@ def run_variant(
         stage_ms=stage_ms,
         frame_ms=_median_p90(frame_ms),
         fps=timed / elapsed if elapsed > 0 else float("nan"),
-        registered=summary["registered"],
-        frames=summary["frames_read"],
+        registered=summary.registered,
+        frames=summary.frames_read,
         peak_rss_mb=_peak_rss_mb(),
-        overlap=summary["overlap"],
+        overlap=summary.overlap,
     )
 
 
@@ -193,8 +193,8 @@ def run_build(
         wall = time.perf_counter() - started
     return BuildRow(
         name=name,
-        frames=run.summary["frames_read"],
-        registered=run.summary["registered"],
+        frames=run.summary.frames_read,
+        registered=run.summary.registered,
         streaming_s=last - started,
         wall_s=wall,
     )

@@ -109,7 +109,7 @@ def _resize(image: np.ndarray, scale: float) -> np.ndarray:
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
-def fit_homography(xy_1: np.ndarray, xy_2: np.ndarray) -> np.ndarray | None:
+def least_squares_homography(xy_1: np.ndarray, xy_2: np.ndarray) -> np.ndarray | None:
     """Least-squares H_1_to_2 of control points (all of them, no RANSAC); None if < 4 points."""
     if len(xy_1) < gm.MIN_MATCHES:
         return None
@@ -194,7 +194,7 @@ def evaluate_pair(
 
     H_gt_full = pair.H_1_to_2
     if H_gt_full is None and pair.control_points is not None:
-        H_gt_full = fit_homography(pair.control_points[:, :2], pair.control_points[:, 2:])
+        H_gt_full = least_squares_homography(pair.control_points[:, :2], pair.control_points[:, 2:])
 
     rep = ms = auc = cover = float("nan")
     n_tp = 0

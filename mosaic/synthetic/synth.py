@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from mosaic.errors import ConfigError, InputError, OutputError
+from mosaic.geometry import translation
 from mosaic.io import (
     IMAGE_READ_SUFFIXES,
     atomic_path,
@@ -244,10 +245,6 @@ def _smooth_signal(rng: np.random.Generator, t: np.ndarray, n_terms: int = 3) ->
     return (2 * sig - (lo + hi)) / max(hi - lo, 1e-12)
 
 
-def _translation(tx: float, ty: float) -> np.ndarray:
-    return np.array([[1, 0, tx], [0, 1, ty], [0, 0, 1]], dtype=np.float64)
-
-
 def _centre_path(rng: np.random.Generator, steps: np.ndarray, radius: float) -> np.ndarray:
     """Smooth curve inside a disc of `radius`, sampled at arc lengths cumsum(steps): (N, 2).
 
@@ -319,7 +316,7 @@ def _view_maps(
     A[:, 2, 2] = 1.0
     P = np.tile(np.eye(3), (n, 1, 1))
     P[:, 2, :2] = tilt
-    return A @ P @ _translation(-(w - 1) / 2, -(h - 1) / 2), zoom, speed
+    return A @ P @ translation(-(w - 1) / 2, -(h - 1) / 2), zoom, speed
 
 
 def _centre_steps(params: SynthParams, speed: np.ndarray, tremor: np.ndarray) -> np.ndarray:
@@ -414,7 +411,7 @@ def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
         half_height = (h - 1) / 2 * base / zoom  # in source px
         min_dist = np.maximum((1.0 - params.rim_overlap) * half_height, 1.0)
         path = _touch_rim(path, np.array([cx, cy]), _fov_distance(source), min_dist)
-    H = _translation(cx, cy)[None] @ np.tile(np.eye(3), (n, 1, 1))
+    H = translation(cx, cy)[None] @ np.tile(np.eye(3), (n, 1, 1))
     H[:, :2, 2] += path
     H = H @ A
     return H / H[:, 2:3, 2:3]
