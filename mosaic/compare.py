@@ -39,7 +39,13 @@ import numpy as np
 from mosaic.config import Config, for_photographs
 from mosaic.errors import InputError, MosaicError
 from mosaic.features import FeatureExtractor
-from mosaic.geometry import apply_homography, apply_quadratic, pixel_scale, quadratic_terms
+from mosaic.geometry import (
+    apply_homography,
+    apply_quadratic,
+    pixel_centre_corners,
+    pixel_scale,
+    quadratic_terms,
+)
 from mosaic.io import (
     IMAGE_READ_SUFFIXES,
     make_folder,
@@ -190,7 +196,7 @@ def covered_area(image: np.ndarray, report: dict[str, Any] | None = None) -> np.
     w, h = (report.get("input") or {}).get("width"), (report.get("input") or {}).get("height")
     main = report.get("main_segment", 0)
     if frames and w and h:
-        corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
+        corners = pixel_centre_corners((h, w))
         placed = np.zeros_like(mask)
         for f in frames:
             if f.get("H_to_canvas") is not None and f.get("segment") == main:

@@ -40,6 +40,13 @@ def frame_corners(shape: tuple[int, ...]) -> np.ndarray:
     return np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64)
 
 
+def pixel_centre_corners(shape: tuple[int, ...]) -> np.ndarray:
+    """The centres of the four corner pixels (x, y) of an image of `shape` (h, w): (0, 0) to
+    (w - 1, h - 1), where a warp samples them (`frame_corners` is the outline)."""
+    h, w = shape[:2]
+    return np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
+
+
 def rescaled(xy: np.ndarray, s: float | np.ndarray) -> np.ndarray:
     """Points of an image in the pixels of that image resized by `s` (a factor or (sx, sy)):
     pixel centres map as (x + 0.5) s - 0.5."""

@@ -36,7 +36,7 @@ from scipy.optimize import least_squares
 from mosaic.canvas import Canvas
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
-from mosaic.geometry import translation
+from mosaic.geometry import pixel_centre_corners, translation
 from mosaic.preprocess import erode_by_disc
 from mosaic.registration import apply_homography as transform
 
@@ -218,18 +218,11 @@ def fit_canvas_to_source(
 # --------------------------------------------------------------------------------------------
 
 
-def _pixel_centre_corners(frame_size: tuple[int, int]) -> np.ndarray:
-    """The centres of a (width, height) frame's corner pixels, (0, 0) to (w - 1, h - 1) (not
-    `geometry.frame_corners`, the outline: (0, 0) to (w, h))."""
-    w, h = frame_size
-    return np.array([[0.0, 0.0], [w - 1.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0]])
-
-
 def _footprint_corners(
     H_frames_to_canvas: Sequence[np.ndarray], frame_size: tuple[int, int]
 ) -> list[np.ndarray]:
     """Each frame's four corners in the canvas; frames sent (partly) to infinity are left out."""
-    corners = np.c_[_pixel_centre_corners(frame_size), np.ones(4)]
+    corners = np.c_[pixel_centre_corners(frame_size[::-1]), np.ones(4)]
     out = []
     for H in H_frames_to_canvas:
         mapped = corners @ np.asarray(H, np.float64).T
