@@ -161,20 +161,6 @@ def _step_errors(
     return errors
 
 
-def _model_counts(frames: list[FrameEntry]) -> dict[str, int]:
-    """Registered frames per motion model (every model of MOTION_MODELS, 0 when unused).
-
-    Frames without a `"model"` (a segment's first frame, older reports) are not counted; a
-    model name outside MOTION_MODELS gets its own entry after them.
-    """
-    counts = dict.fromkeys(MOTION_MODELS, 0)
-    for f in frames:
-        model = f.model
-        if f.status == REGISTERED and model is not None:
-            counts[model] = counts.get(model, 0) + 1
-    return counts
-
-
 def _quality_vs_error(
     frames: list[FrameEntry], errors: dict[int, float] | None
 ) -> dict[str, float]:
@@ -422,7 +408,7 @@ def evaluate_video(
         step_p90_px=float(np.percentile(step_values, 90)) if step_values.size else math.nan,
         **_quality_vs_error(frames, errors),
         **scores,
-        model_counts=_model_counts(frames),
+        model_counts={**dict.fromkeys(MOTION_MODELS, 0), **summary.models},
         segments=summary.segments,
         precision=summary.precision,
         errors=sorted(errors.items()) if errors else [],

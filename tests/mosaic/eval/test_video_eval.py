@@ -17,7 +17,6 @@ from mosaic.config import Config, with_overrides
 from mosaic.eval.video_eval import (
     _frame_references,
     _leading_accurate,
-    _model_counts,
     _quality_vs_error,
     _step_errors,
     _unique_stems,
@@ -180,19 +179,10 @@ def test_step_errors_of_older_reports_use_the_previous_frame():
     assert _frame_references(frames) == {1: 0, 2: 1, 3: 2, 5: 3, 6: 5, 7: 6, 9: 8}
     steps = _step_errors(frames, gt, size)
     assert steps == pytest.approx({1: 0, 2: 8, 3: 8, 5: 0, 6: 0, 7: 0, 9: 0}, abs=1e-9)
-    assert _model_counts(frames) == {
-        "translation": 0,
-        "similarity": 0,
-        "affine": 0,
-        "homography": 0,
-    }
 
 
-def test_model_counts_of_registered_frames():
-    frames, _, _, _ = _step_fixture()
-    frames[4] = replace(frames[4], model="homography")  # frame 4 failed: not counted
-    counts = _model_counts(frames)
-    assert counts == {"translation": 1, "similarity": 3, "affine": 1, "homography": 1}
+def test_format_models():
+    counts = {"translation": 1, "similarity": 3, "affine": 1, "homography": 1}
     assert format_models(counts) == "tra 1 / sim 3 / aff 1 / hom 1"
     assert format_models(dict.fromkeys(counts, 0)) is None
 
