@@ -70,6 +70,17 @@ EXIT_INTERRUPTED = 130
 VERBOSE_HELP = "Log each stage's details (INFO), OpenCV's own lines and an error's traceback."
 
 
+# Options several commands share (and, above each command, those whose help takes lines):
+# named once, so that each command's signature stays short.
+Verbose = Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)]
+ConfigFile = Annotated[
+    Path | None, typer.Option("--config", "-c", help="TOML config (see sample_config.toml).")
+]
+MaxFrames = Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")]
+Step = Annotated[int | None, typer.Option(help="Process every K-th frame.")]
+ViewerFlag = Annotated[bool, typer.Option("--viewer", help="Short for --rerun spawn.")]
+
+
 def package_version() -> str:
     """The installed version of retina-mosaic (both `mosaic` and `glampoints` ship in it)."""
     try:
@@ -136,47 +147,50 @@ def _build_paths(
     return output, check_output_path(report_path, REPORT_SUFFIXES), mode, target
 
 
+# `build`'s options whose help takes lines
+BuildRerun = Annotated[
+    str,
+    typer.Option(
+        help=f"Live rerun viewer: {' | '.join(VIEWER_MODES)} (serve prints a browser URL)."
+    ),
+]
+BuildRerunTarget = Annotated[
+    str | None,
+    typer.Option(
+        help="save: the .rrd file (default: next to the output); "
+        "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
+    ),
+]
+
+
 @app.command()
 def build(
     video: Annotated[Path, typer.Argument(help="Video file OpenCV reads, or a folder of frames.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Mosaic image (PNG).")] = Path(
         "mosaic.png"
     ),
-    config_path: Annotated[
-        Path | None, typer.Option("--config", "-c", help="TOML config (see sample_config.toml).")
-    ] = None,
+    config_path: ConfigFile = None,
     detector: Annotated[
         str | None, typer.Option(help=f"Keypoint detector: {', '.join(DETECTORS)}.")
     ] = None,
     report: Annotated[
         Path | None, typer.Option(help="Report JSON (default: next to the output, .json).")
     ] = None,
-    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")] = None,
-    step: Annotated[int | None, typer.Option(help="Process every K-th frame.")] = None,
+    max_frames: MaxFrames = None,
+    step: Step = None,
     strategy: Annotated[
         str | None, typer.Option(help="keyframes (default) | chain (the paper's frame-to-frame).")
     ] = None,
     on_failure: Annotated[
         str | None, typer.Option(help="stop | skip | restart (new mosaic segment).")
     ] = None,
-    rerun: Annotated[
-        str,
-        typer.Option(
-            help=f"Live rerun viewer: {' | '.join(VIEWER_MODES)} (serve prints a browser URL)."
-        ),
-    ] = "off",
-    rerun_target: Annotated[
-        str | None,
-        typer.Option(
-            help="save: the .rrd file (default: next to the output); "
-            "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
-        ),
-    ] = None,
-    viewer_flag: Annotated[bool, typer.Option("--viewer", help="Short for --rerun spawn.")] = False,
+    rerun: BuildRerun = "off",
+    rerun_target: BuildRerunTarget = None,
+    viewer_flag: ViewerFlag = False,
     rerun_canvas_every: Annotated[
         int, typer.Option(min=1, help="Send the mosaic canvas to the viewer every N frames.")
     ] = 10,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    verbose: Verbose = False,
 ) -> None:
     """Build a retina mosaic from a video, streaming frame by frame."""
     setup_logging(verbose)
@@ -227,17 +241,36 @@ def build(
         _serve_until_interrupted(getattr(made[0] if made else None, "url", None))
 
 
+# `batch`'s options whose help takes lines
+BatchInput = Annotated[
+    Path,
+    typer.Argument(
+        metavar="INPUT",
+        help="Folder searched recursively for videos and folders of frames, or a CSV "
+        "manifest (columns video, optional config and id; patient and/or eye with visit: "
+        "each patient's visits compared onto the first).",
+    ),
+]
+CpusPerVideo = Annotated[
+    int | None,
+    typer.Option(
+        min=1,
+        help="Threads (local) or Ray num_cpus (ray) per video "
+        "(default: the cores shared by the workers; ray: 1).",
+    ),
+]
+Resume = Annotated[
+    bool,
+    typer.Option(
+        "--resume/--no-resume",
+        help="Skip videos whose report says complete (--no-resume redoes them).",
+    ),
+]
+
+
 @app.command()
 def batch(
-    source: Annotated[
-        Path,
-        typer.Argument(
-            metavar="INPUT",
-            help="Folder searched recursively for videos and folders of frames, or a CSV "
-            "manifest (columns video, optional config and id; patient and/or eye with visit: "
-            "each patient's visits compared onto the first).",
-        ),
-    ],
+    source: BatchInput,
     out_dir: Annotated[
         Path, typer.Option("--output", "-o", help="Output folder: OUT_DIR/<id>/ per video.")
     ],
@@ -259,21 +292,8 @@ def batch(
         float,
         typer.Option(min=1.0, help="ray: give up reaching --ray-address after this many seconds."),
     ] = 60.0,
-    cpus_per_video: Annotated[
-        int | None,
-        typer.Option(
-            min=1,
-            help="Threads (local) or Ray num_cpus (ray) per video "
-            "(default: the cores shared by the workers; ray: 1).",
-        ),
-    ] = None,
-    resume: Annotated[
-        bool,
-        typer.Option(
-            "--resume/--no-resume",
-            help="Skip videos whose report says complete (--no-resume redoes them).",
-        ),
-    ] = True,
+    cpus_per_video: CpusPerVideo = None,
+    resume: Resume = True,
     pattern: Annotated[
         str | None,
         typer.Option(
@@ -281,7 +301,7 @@ def batch(
         ),
     ] = None,
     rerun: Annotated[str, typer.Option(help="off | save (OUT_DIR/<id>/recording.rrd).")] = "off",
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    verbose: Verbose = False,
 ) -> None:
     """Build the mosaics of many videos: one folder per video, OUT_DIR/summary.csv / .json and
     a browsable OUT_DIR/index.html; patients' visits (manifest) compared onto the first into
@@ -324,15 +344,92 @@ def batch(
         raise typer.Exit(EXIT_FAILED)
 
 
+# `synth`'s options whose help takes lines
+SynthImage = Annotated[
+    Path | None,
+    typer.Argument(
+        help="Source fundus image, or a folder of them (the seed picks one); "
+        "default: the shipped CC0 sample."
+    ),
+]
+Realistic = Annotated[
+    bool,
+    typer.Option(
+        help="Like real magnified fundus video: 25-45 % of the source's view per frame, "
+        "its rim at times, strong vignetting, gain/gamma changes, blur/defocus/glare bursts. "
+        "Curved pairs: the aperture filled, each photograph as from its own visit (focus, "
+        "illumination, gamma, colour, lesions, noise, JPEG quality)."
+    ),
+]
+Interlaced = Annotated[
+    bool,
+    typer.Option(
+        help="As an interlaced camera: each frame's odd rows from half a frame interval "
+        "later (the truth is the even rows' pose)."
+    ),
+]
+LensReflexes = Annotated[
+    int,
+    typer.Option(
+        min=0,
+        help="N bright reflections of the fundus lens that stay near one place of the frame "
+        "(a few px of wander) while the retina moves under them.",
+    ),
+]
+DustSpots = Annotated[
+    int,
+    typer.Option(
+        min=0,
+        help="N out-of-focus dust spots on the sensor or lens: soft dark blobs fixed in the "
+        "frame (20-60 % of the light taken at their centre).",
+    ),
+]
+LensRim = Annotated[
+    bool,
+    typer.Option(
+        help="As through a handheld fundus lens: the retina only inside the lens's rim, a "
+        "disc that moves about the frame, the face out of focus around it.",
+    ),
+]
+HazeFrames = Annotated[
+    int,
+    typer.Option(
+        min=0,
+        help="The last N frames seen through haze: a veil of scattered light (contrast "
+        "down to 25-55 %), slightly blurred.",
+    ),
+]
+CurvedPairs = Annotated[
+    int,
+    typer.Option(
+        min=0,
+        help="Instead of a video: N pairs of photographs of a curved retina with exact "
+        "control points, in FIRE's layout, into the folder OUTPUT (pair i: source and "
+        "camera poses of seed + i).",
+    ),
+]
+TurnDeg = Annotated[
+    float,
+    typer.Option(
+        min=0.0,
+        max=40.0,
+        help="Curved pairs: the eye turns up to half this each way per photograph (the "
+        "larger, the less overlap and the more curvature between the two).",
+    ),
+]
+FollowupOf = Annotated[
+    Path | None,
+    typer.Option(
+        help="A follow-up visit of this synthetic baseline video (or its .gt.json): its "
+        "source with a new haemorrhage, a narrowed vessel and laser scars planted where both "
+        "videos look, the changes in the ground truth (`followup`; see compare.md).",
+    ),
+]
+
+
 @app.command()
 def synth(
-    image: Annotated[
-        Path | None,
-        typer.Argument(
-            help="Source fundus image, or a folder of them (the seed picks one); "
-            "default: the shipped CC0 sample."
-        ),
-    ] = None,
+    image: SynthImage = None,
     output: Annotated[Path, typer.Option("--output", "-o", help="Video (.mp4/.avi) or folder.")] = (
         Path("synthetic.mp4")
     ),
@@ -346,80 +443,16 @@ def synth(
     hard: Annotated[
         bool, typer.Option(help="Hard like real video: loops, fast motion, blur bursts, glare.")
     ] = False,
-    realistic: Annotated[
-        bool,
-        typer.Option(
-            help="Like real magnified fundus video: 25-45 % of the source's view per frame, "
-            "its rim at times, strong vignetting, gain/gamma changes, blur/defocus/glare bursts. "
-            "Curved pairs: the aperture filled, each photograph as from its own visit (focus, "
-            "illumination, gamma, colour, lesions, noise, JPEG quality)."
-        ),
-    ] = False,
-    interlaced: Annotated[
-        bool,
-        typer.Option(
-            help="As an interlaced camera: each frame's odd rows from half a frame interval "
-            "later (the truth is the even rows' pose)."
-        ),
-    ] = False,
-    lens_reflexes: Annotated[
-        int,
-        typer.Option(
-            min=0,
-            help="N bright reflections of the fundus lens that stay near one place of the frame "
-            "(a few px of wander) while the retina moves under them.",
-        ),
-    ] = 0,
-    dust_spots: Annotated[
-        int,
-        typer.Option(
-            min=0,
-            help="N out-of-focus dust spots on the sensor or lens: soft dark blobs fixed in the "
-            "frame (20-60 % of the light taken at their centre).",
-        ),
-    ] = 0,
-    lens_rim: Annotated[
-        bool,
-        typer.Option(
-            help="As through a handheld fundus lens: the retina only inside the lens's rim, a "
-            "disc that moves about the frame, the face out of focus around it.",
-        ),
-    ] = False,
-    haze_frames: Annotated[
-        int,
-        typer.Option(
-            min=0,
-            help="The last N frames seen through haze: a veil of scattered light (contrast "
-            "down to 25-55 %), slightly blurred.",
-        ),
-    ] = 0,
-    curved_pairs: Annotated[
-        int,
-        typer.Option(
-            min=0,
-            help="Instead of a video: N pairs of photographs of a curved retina with exact "
-            "control points, in FIRE's layout, into the folder OUTPUT (pair i: source and "
-            "camera poses of seed + i).",
-        ),
-    ] = 0,
-    turn_deg: Annotated[
-        float,
-        typer.Option(
-            min=0.0,
-            max=40.0,
-            help="Curved pairs: the eye turns up to half this each way per photograph (the "
-            "larger, the less overlap and the more curvature between the two).",
-        ),
-    ] = 16.0,
-    followup_of: Annotated[
-        Path | None,
-        typer.Option(
-            help="A follow-up visit of this synthetic baseline video (or its .gt.json): its "
-            "source with a new haemorrhage, a narrowed vessel and laser scars planted where both "
-            "videos look, the changes in the ground truth (`followup`; see compare.md).",
-        ),
-    ] = None,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    realistic: Realistic = False,
+    interlaced: Interlaced = False,
+    lens_reflexes: LensReflexes = 0,
+    dust_spots: DustSpots = 0,
+    lens_rim: LensRim = False,
+    haze_frames: HazeFrames = 0,
+    curved_pairs: CurvedPairs = 0,
+    turn_deg: TurnDeg = 16.0,
+    followup_of: FollowupOf = None,
+    verbose: Verbose = False,
 ) -> None:
     """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json), or
     pairs of photographs of a curved retina with exact control points (--curved-pairs)."""
@@ -480,7 +513,7 @@ def register(
         Path | None,
         typer.Option(help="Image: both images side by side, keypoints and inlier matches drawn."),
     ] = None,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    verbose: Verbose = False,
 ) -> None:
     """Register MOVING onto FIXED and print H_moving_to_fixed (full-resolution pixels)."""
     setup_logging(verbose)
@@ -531,6 +564,30 @@ def _register_pairs_file(
         raise typer.Exit(1)
 
 
+# `compare`'s options whose help takes lines
+Manifest = Annotated[
+    Path | None,
+    typer.Option(
+        help="CSV with columns patient,visit,path: each patient's later visits compared "
+        "onto the first, OUT/<patient>/<visit>/, summary.json and index.html.",
+    ),
+]
+CompareRerun = Annotated[
+    str,
+    typer.Option(
+        help=f"Rerun viewer: {' | '.join(VIEWER_MODES)}; baseline, warped follow-up and "
+        "change map as layers of one space."
+    ),
+]
+CompareRerunTarget = Annotated[
+    str | None,
+    typer.Option(
+        help="save: the .rrd file (default OUT_DIR/compare.rrd); "
+        "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
+    ),
+]
+
+
 @app.command()
 def compare(
     baseline: Annotated[
@@ -543,31 +600,13 @@ def compare(
     output: Annotated[
         Path, typer.Option("--output", "-o", help="Folder for the pictures and compare.json.")
     ] = Path("compare"),
-    manifest: Annotated[
-        Path | None,
-        typer.Option(
-            help="CSV with columns patient,visit,path: each patient's later visits compared "
-            "onto the first, OUT/<patient>/<visit>/, summary.json and index.html.",
-        ),
-    ] = None,
+    manifest: Manifest = None,
     config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
     detector: Annotated[str | None, typer.Option(help=f"{', '.join(DETECTORS)}.")] = None,
-    rerun: Annotated[
-        str,
-        typer.Option(
-            help=f"Rerun viewer: {' | '.join(VIEWER_MODES)}; baseline, warped follow-up and "
-            "change map as layers of one space."
-        ),
-    ] = "off",
-    rerun_target: Annotated[
-        str | None,
-        typer.Option(
-            help="save: the .rrd file (default OUT_DIR/compare.rrd); "
-            "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
-        ),
-    ] = None,
-    viewer_flag: Annotated[bool, typer.Option("--viewer", help="Short for --rerun spawn.")] = False,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    rerun: CompareRerun = "off",
+    rerun_target: CompareRerunTarget = None,
+    viewer_flag: ViewerFlag = False,
+    verbose: Verbose = False,
 ) -> None:
     """Put a follow-up visit on the baseline's map: the follow-up warped, a checkerboard, a
     two-colour overlay, a change map and compare.json (H/Q_followup_to_baseline, changed
@@ -635,11 +674,9 @@ def evaluate(
     out: Annotated[Path, typer.Option(help="Folder for the tables (CSV, JSON) and plots.")] = Path(
         "evaluation"
     ),
-    config_path: Annotated[
-        Path | None, typer.Option("--config", "-c", help="TOML config (see sample_config.toml).")
-    ] = None,
-    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")] = None,
-    step: Annotated[int | None, typer.Option(help="Process every K-th frame.")] = None,
+    config_path: ConfigFile = None,
+    max_frames: MaxFrames = None,
+    step: Step = None,
     strategy: Annotated[
         str,
         typer.Option(help="Comma-separated strategies: keyframes, chain (the paper's)."),
@@ -659,7 +696,7 @@ def evaluate(
             "itself there, paired over the videos both runs hold (e.g. before / after a change).",
         ),
     ] = None,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    verbose: Verbose = False,
 ) -> None:
     """Compare detectors and strategies on videos: frames until failure, accuracy vs
     VIDEO.gt.json, drift, speed; paired differences with bootstrap intervals."""
@@ -692,6 +729,25 @@ def evaluate(
         typer.echo(f"tables and plots: {out}")
 
 
+# `bench`'s options whose help takes lines
+WholeBuild = Annotated[
+    bool,
+    typer.Option(
+        "--build/--no-build",
+        help="Also time the whole `mosaic build` (re-render, written mosaic and report) of a "
+        "realistic synthetic video of FRAMES frames with the first detector, next to its "
+        "streaming rate.",
+    ),
+]
+Profile = Annotated[
+    int,
+    typer.Option(
+        help="Also print a cProfile of the first detector (serial run): the N functions "
+        "with the most own time (0: none)."
+    ),
+]
+
+
 @app.command()
 def bench(
     size: Annotated[str, typer.Option(help="Frame size WIDTHxHEIGHT.")] = "660x350",
@@ -705,15 +761,7 @@ def bench(
     ] = None,
     config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
     rerun: Annotated[bool, typer.Option(help="Also measure the --rerun save overhead.")] = True,
-    whole_build: Annotated[
-        bool,
-        typer.Option(
-            "--build/--no-build",
-            help="Also time the whole `mosaic build` (re-render, written mosaic and report) of a "
-            "realistic synthetic video of FRAMES frames with the first detector, next to its "
-            "streaming rate.",
-        ),
-    ] = True,
+    whole_build: WholeBuild = True,
     scales: Annotated[
         str,
         typer.Option(help="Comma-separated detection scales to time for the first detector."),
@@ -721,14 +769,8 @@ def bench(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print JSON instead of the table.")
     ] = False,
-    profile: Annotated[
-        int,
-        typer.Option(
-            help="Also print a cProfile of the first detector (serial run): the N functions "
-            "with the most own time (0: none)."
-        ),
-    ] = 0,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    profile: Profile = 0,
+    verbose: Verbose = False,
 ) -> None:
     """Time the whole pipeline per detector on a synthetic video (ms per stage, frames/s)."""
     from mosaic.eval.bench import (
