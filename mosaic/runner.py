@@ -134,7 +134,9 @@ class VideoRun:
         return self.report.summary
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
+    """An exception as `Type: first line of its text`, for a one-line message (a run's
+    error, a pair's failure, the command line's internal error)."""
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
 
@@ -263,7 +265,7 @@ def run_video(
         except Exception as exc:
             if not salvage:
                 raise
-            error = f"failed while registering: {_one_line(exc)}"
+            error = f"failed while registering: {one_line(exc)}"
             log.info("%s; writing the mosaic so far", error, exc_info=True)
     if interrupted or error is not None:
         result = builder.finish(interrupted=True)
@@ -292,7 +294,7 @@ def _finish(
     except Exception as exc:
         if not salvage:
             raise
-        error = f"failed while refining / rendering: {_one_line(exc)}"
+        error = f"failed while refining / rendering: {one_line(exc)}"
         log.info("%s; writing the live mosaic and unrefined poses", error, exc_info=True)
         return error
 
