@@ -60,6 +60,12 @@ def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> 
     return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
+def circle_unscaled(circle: tuple[float, float, float], s: float) -> tuple[float, float, float]:
+    """A circle (cx, cy, r) found in an image resized by `s`, in the original's pixels."""
+    cx, cy, r = circle
+    return (cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5, r / s
+
+
 def pixel_scale(s: float) -> np.ndarray:
     """H of a resize by the factor `s` (3x3 float64): pixel centres map as x' = (x + 0.5) s - 0.5,
     as `cv2.resize` samples."""
