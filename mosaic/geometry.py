@@ -1,5 +1,5 @@
 """Points and transforms, written once: homographies and quadratics applied to points, a
-frame's corners, pixel-centre rescaling, the frame-centred normalisation that fits are
+frame's corners, translations, pixel-centre rescaling, the frame-centred normalisation that fits are
 conditioned in, Huber weights for re-weighted fits, and the corner error that scores an
 estimate against the truth.
 
