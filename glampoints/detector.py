@@ -372,12 +372,17 @@ def save_weights(state_dict: dict[str, torch.Tensor], path: str | Path, meta: di
     atomic_torch_save(payload, path)
 
 
-def atomic_torch_save(obj: Any, path: Path) -> None:
-    """`torch.save` through a temporary file beside `path`, then a rename: a kill never leaves
-    half a file (weights, training checkpoints)."""
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
+def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
+    """`write` a temporary file beside `path`, then rename it: a kill never leaves half a file
+    (weights, training checkpoints, the training log)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    write(tmp)
     tmp.replace(path)
+
+
+def atomic_torch_save(obj: Any, path: Path) -> None:
+    """`torch.save` of `obj` to `path`, atomically (`atomic_write`)."""
+    atomic_write(path, lambda tmp: torch.save(obj, tmp))
 
 
 def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:

@@ -51,7 +51,13 @@ import torch
 from tqdm import tqdm
 
 from glampoints.descriptors import upright_rootsift
-from glampoints.detector import WeightsError, atomic_torch_save, load_weights, save_weights
+from glampoints.detector import (
+    WeightsError,
+    atomic_torch_save,
+    atomic_write,
+    load_weights,
+    save_weights,
+)
 from glampoints.metrics import (
     matching_score,
     registration_class,
@@ -343,13 +349,6 @@ def evaluate_glampoints(net: UNet, pairs: Sequence[Pair], cfg: TrainConfig) -> d
 # Checkpoints
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    """Write via a temporary file beside `path`, then rename: a kill never leaves half a file."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
-
-
 def read_metrics(path: Path) -> list[dict[str, Any]]:
     """The records of a metrics.jsonl. A partial last line (a run killed while appending, with
     an older version that appended in place) is dropped with a warning; a bad line before the
@@ -380,7 +379,8 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
 
 def write_metrics(path: Path, records: Sequence[dict[str, Any]]) -> None:
     """metrics.jsonl rewritten whole, atomically (one JSON record per line)."""
-    _atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in records))
+    text = "".join(json.dumps(r) + "\n" for r in records)
+    atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
 
 def _rng_states() -> dict[str, Any]:

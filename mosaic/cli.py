@@ -4,7 +4,8 @@ module of `mosaic` importing typer.
 Every `MosaicError` (bad path, unreadable video, invalid config or weights, ...) becomes one line
 on stderr and exit code 2. `build` and `batch` run each video through `runner.run_video`: Ctrl-C
 still writes the partial mosaic and report (exit 130), and a failure while refining or
-re-rendering writes the live mosaic (exit 1).
+re-rendering writes the live mosaic (exit 1). Each command parses its options, calls the
+application and prints; what it prints without typer is made in `cli_support`.
 """
 
 from __future__ import annotations
@@ -14,22 +15,25 @@ import sys
 try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no traceback
     import json
     import logging
-    import os
-    import re
-    import signal
-    import threading
     import time
     from collections.abc import Iterator
-    from contextlib import contextmanager, suppress
+    from contextlib import contextmanager
     from importlib.metadata import PackageNotFoundError, version
     from pathlib import Path
     from typing import Annotated, Any
 
-    import cv2
-    import numpy as np
     import typer
     from tqdm.contrib.logging import logging_redirect_tqdm
 
+    from mosaic.cli_support import (
+        options_config,
+        pair_text,
+        require_detectors,
+        setup_logging,
+        summary_text,
+        terminate_as_interrupt,
+        viewer_args,
+    )
     from mosaic.config import Config, for_photographs, load_config, with_overrides
     from mosaic.errors import InputError, MosaicError
     from mosaic.features import DETECTORS, FeatureExtractor
@@ -40,15 +44,11 @@ try:  # Ctrl-C while the libraries load (torch takes seconds): exit 130, no trac
         check_distinct_paths,
         check_output_path,
         open_frames,
-        read_image,
-        write_image,
     )
-    from mosaic.pairs import register_pair
-    from mosaic.pixel_refine import warp_check
+    from mosaic.pair_files import pair_answer, pairs_file_answers
     from mosaic.registration import MODELS
-    from mosaic.report import BuildReport, Summary
-    from mosaic.runner import Outputs, run_video
-    from mosaic.synthetic.synth import SynthParams, pick_source, write_synthetic_video
+    from mosaic.runner import Outputs, one_line, run_video
+    from mosaic.synthetic.request import SynthRequest, parse_size, synthesize
     from mosaic.viz import VIEWER_MODES, RerunViewer, Viewer, make_viewer
 except KeyboardInterrupt:
     sys.stderr.write("interrupted\n")
@@ -68,6 +68,17 @@ EXIT_FAILED = 1
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
 VERBOSE_HELP = "Log each stage's details (INFO), OpenCV's own lines and an error's traceback."
+
+
+# Options several commands share (and, above each command, those whose help takes lines):
+# named once, so that each command's signature stays short.
+Verbose = Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)]
+ConfigFile = Annotated[
+    Path | None, typer.Option("--config", "-c", help="TOML config (see sample_config.toml).")
+]
+MaxFrames = Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")]
+Step = Annotated[int | None, typer.Option(help="Process every K-th frame.")]
+ViewerFlag = Annotated[bool, typer.Option("--viewer", help="Short for --rerun spawn.")]
 
 
 def package_version() -> str:
@@ -106,163 +117,6 @@ def _user_errors() -> Iterator[None]:
         raise typer.Exit(EXIT_USER_ERROR) from None
 
 
-@contextmanager
-def _terminate_as_interrupt(children: bool = False) -> Iterator[None]:
-    """SIGTERM (`kill`, a job scheduler, `docker stop`) handled as Ctrl-C: the run stops where
-    it is and writes what it has, instead of dying with nothing written. `children`: the
-    worker processes get Ctrl-C too (a terminal sends it to them all; `kill` to one)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield  # signal handlers can only be set from the main thread
-        return
-
-    def interrupt(signum: int, frame: object) -> None:
-        if children:
-            import multiprocessing
-
-            for child in multiprocessing.active_children():
-                with suppress(OSError):  # gone meanwhile
-                    os.kill(child.pid, signal.SIGINT)
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:  # None: a handler not set from Python, which cannot be put back
-        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
-
-
-class _OncePerKind(logging.Filter):
-    """Let the first warning of each kind through, a kind being its message with the numbers
-    left out ("frame 12 skipped: blurred ..."): per-frame problems are counted in the report."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self._seen: set[tuple[str, str]] = set()
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno != logging.WARNING:
-            return True
-        kind = (record.name, re.sub(r"\d+(\.\d+)?", "#", record.getMessage()))
-        if kind in self._seen:
-            return False
-        self._seen.add(kind)
-        return True
-
-
-def _setup_logging(verbose: bool) -> None:
-    """Warnings (each kind once) or, with `verbose`, everything, on stderr; OpenCV's own log
-    lines only with `verbose` (our messages say what went wrong, on one line)."""
-    logging.basicConfig(
-        level=logging.INFO if verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
-    if verbose:
-        return
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    for handler in logging.getLogger().handlers:
-        plain = type(handler) is logging.StreamHandler  # ours, not a test's capture
-        if plain and not any(isinstance(f, _OncePerKind) for f in handler.filters):
-            handler.addFilter(_OncePerKind())
-
-
-def _require_detectors(config: Config, names: list[str]) -> None:
-    """Detectors the user named must load (GLAMpoints: its weights): else the error, not a
-    table without them."""
-    for name in names:
-        FeatureExtractor(with_overrides(config, features={"detector": name}).features)
-
-
-def _config(
-    path: Path | None,
-    detector: str | None = None,
-    **pipeline: Any,
-) -> Config:
-    config = load_config(path)
-    overrides: dict[str, dict[str, Any]] = {}
-    if detector is not None:
-        if detector not in DETECTORS:
-            raise MosaicError(f"unknown detector {detector!r} (choices: {', '.join(DETECTORS)})")
-        overrides["features"] = {"detector": detector}
-    pipeline = {k: v for k, v in pipeline.items() if v is not None}
-    if pipeline:
-        overrides["pipeline"] = pipeline
-    return with_overrides(config, **overrides) if overrides else config
-
-
-def _segments_row(report: BuildReport) -> str:
-    """The segment count; with several, each one's frames and which is the main mosaic."""
-    segments = report.segments
-    if len(segments) < 2:
-        return str(report.summary.segments)
-    sizes = " / ".join(str(s.frames) for s in segments)
-    return f"{len(segments)} ({sizes} frames; main mosaic: segment {report.main_segment})"
-
-
-def _detector_row(summary: Summary) -> str:
-    """The detector, with the precision its network ran in where it has one."""
-    precision = summary.precision
-    return f"{summary.detector} ({precision})" if precision else str(summary.detector)
-
-
-def _cell(value: Any) -> str:
-    """A summary value; "-" where there is none (a one-frame video has no quality: no mosaic
-    under its frame to compare with)."""
-    return "-" if value is None else str(value)
-
-
-def _print_summary(report: BuildReport, output: Path, report_path: Path) -> None:
-    summary = report.summary
-    rows = [
-        ("frames read", summary.frames_read),
-        ("registered", summary.registered),
-        ("failed", summary.failed),
-        ("skipped", summary.skipped),
-        ("frames until failure", summary.frames_until_failure),
-        ("longest registered run", summary.longest_registered_run),
-        ("segments", _segments_row(report)),
-        ("mean matches / inliers", f"{summary.mean_matches} / {summary.mean_inliers}"),
-        ("quality / flagged", f"{_cell(summary.quality)} / {summary.quality_flagged}"),
-        ("frames per second", summary.fps),
-        ("detector", _detector_row(summary)),
-    ]
-    if summary.deinterlaced:  # an interlaced camera: how many frames were combed
-        rows.insert(4, ("deinterlaced", summary.deinterlaced))
-    elif summary.looks_interlaced:
-        rows.insert(4, ("looks interlaced", "yes (see [preprocess] deinterlace)"))
-    if summary.reflex_frames:  # lens reflexes left out of those frames
-        rows.insert(4, ("lens reflexes masked", f"{summary.reflex_frames} frames"))
-    if summary.lens_rim_frames:  # a handheld lens: what lay outside its rim left out
-        rows.insert(4, ("lens rim masked", f"{summary.lens_rim_frames} frames"))
-    width = max(len(name) for name, _ in rows)
-    typer.echo("\n".join(f"{name:<{width}}  {_cell(value)}" for name, value in rows))
-    typer.echo(f"mosaic: {output}")
-    segments = report.segments
-    for segment in segments if len(segments) > 1 else []:
-        if segment.mosaic:
-            typer.echo(f"segment {segment.index}: {segment.mosaic}")
-    typer.echo(f"report: {report_path}")
-
-
-def _viewer_args(
-    mode: str, target: str | None, spawn: bool, output: Path
-) -> tuple[str, str | None]:
-    """Resolve --rerun / --viewer / --rerun-target into a mode and its target, failing early."""
-    if mode not in VIEWER_MODES:
-        raise InputError(f"unknown --rerun mode {mode!r} (choices: {', '.join(VIEWER_MODES)})")
-    if spawn:
-        if mode not in ("off", "spawn"):
-            raise InputError(
-                f"--viewer is short for --rerun spawn; it cannot go with --rerun {mode}"
-            )
-        mode = "spawn"
-    if target is not None and mode not in ("save", "connect"):
-        raise InputError(f"--rerun-target is only used with --rerun save or connect, not {mode}")
-    if mode == "save":
-        rrd = target or output.with_suffix(".rrd")
-        target = str(check_output_path(rrd, frozenset({".rrd"})))
-    return mode, target
-
-
 def _serve_until_interrupted(url: str | None) -> None:
     """Keep the rerun server (and the recording it buffers) alive for late viewers."""
     typer.echo(f"still serving the recording at {url} (Ctrl-C to stop)")
@@ -273,54 +127,77 @@ def _serve_until_interrupted(url: str | None) -> None:
         pass
 
 
+def _build_paths(
+    video: Path,
+    output: Path,
+    report: Path | None,
+    config_path: Path | None,
+    rerun: tuple[str, str | None, bool],
+) -> tuple[Path, Path, str, str | None]:
+    """`build`'s outputs checked (writable, none over an input or another output): the mosaic,
+    the report, and the viewer's mode and target from (--rerun, --rerun-target, --viewer)."""
+    output = check_output_path(output, IMAGE_WRITE_SUFFIXES)
+    report_path = report or output.with_suffix(".json")
+    mode, target = viewer_args(*rerun, output)
+    recording = {"--rerun-target": Path(str(target))} if mode == "save" else {}
+    check_distinct_paths(
+        {"--output": output, "--report": report_path, **recording},
+        {"VIDEO": video} | ({"--config": config_path} if config_path else {}),
+    )
+    return output, check_output_path(report_path, REPORT_SUFFIXES), mode, target
+
+
+# `build`'s options whose help takes lines
+BuildRerun = Annotated[
+    str,
+    typer.Option(
+        help=f"Live rerun viewer: {' | '.join(VIEWER_MODES)} (serve prints a browser URL)."
+    ),
+]
+BuildRerunTarget = Annotated[
+    str | None,
+    typer.Option(
+        help="save: the .rrd file (default: next to the output); "
+        "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
+    ),
+]
+
+
 @app.command()
 def build(
     video: Annotated[Path, typer.Argument(help="Video file OpenCV reads, or a folder of frames.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="Mosaic image (PNG).")] = Path(
         "mosaic.png"
     ),
-    config_path: Annotated[
-        Path | None, typer.Option("--config", "-c", help="TOML config (see sample_config.toml).")
-    ] = None,
+    config_path: ConfigFile = None,
     detector: Annotated[
         str | None, typer.Option(help=f"Keypoint detector: {', '.join(DETECTORS)}.")
     ] = None,
     report: Annotated[
         Path | None, typer.Option(help="Report JSON (default: next to the output, .json).")
     ] = None,
-    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")] = None,
-    step: Annotated[int | None, typer.Option(help="Process every K-th frame.")] = None,
+    max_frames: MaxFrames = None,
+    step: Step = None,
     strategy: Annotated[
         str | None, typer.Option(help="keyframes (default) | chain (the paper's frame-to-frame).")
     ] = None,
     on_failure: Annotated[
         str | None, typer.Option(help="stop | skip | restart (new mosaic segment).")
     ] = None,
-    rerun: Annotated[
-        str,
-        typer.Option(
-            help=f"Live rerun viewer: {' | '.join(VIEWER_MODES)} (serve prints a browser URL)."
-        ),
-    ] = "off",
-    rerun_target: Annotated[
-        str | None,
-        typer.Option(
-            help="save: the .rrd file (default: next to the output); "
-            "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
-        ),
-    ] = None,
-    viewer_flag: Annotated[bool, typer.Option("--viewer", help="Short for --rerun spawn.")] = False,
+    rerun: BuildRerun = "off",
+    rerun_target: BuildRerunTarget = None,
+    viewer_flag: ViewerFlag = False,
     rerun_canvas_every: Annotated[
         int, typer.Option(min=1, help="Send the mosaic canvas to the viewer every N frames.")
     ] = 10,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    verbose: Verbose = False,
 ) -> None:
     """Build a retina mosaic from a video, streaming frame by frame."""
-    _setup_logging(verbose)
+    setup_logging(verbose)
     made: list[Viewer] = []
     try:
-        with _user_errors(), _terminate_as_interrupt():
-            config = _config(
+        with _user_errors(), terminate_as_interrupt():
+            config = options_config(
                 config_path,
                 detector,
                 max_frames=max_frames,
@@ -328,15 +205,9 @@ def build(
                 on_failure=on_failure,
                 strategy=strategy,
             )
-            output = check_output_path(output, IMAGE_WRITE_SUFFIXES)
-            report_path = report or output.with_suffix(".json")
-            rerun, rerun_target = _viewer_args(rerun, rerun_target, viewer_flag, output)
-            recording = {"--rerun-target": Path(str(rerun_target))} if rerun == "save" else {}
-            check_distinct_paths(
-                {"--output": output, "--report": report_path, **recording},
-                {"VIDEO": video} | ({"--config": config_path} if config_path else {}),
+            output, report_path, rerun, rerun_target = _build_paths(
+                video, output, report, config_path, (rerun, rerun_target, viewer_flag)
             )
-            report_path = check_output_path(report_path, REPORT_SUFFIXES)
 
             def viewer(info: VideoInfo) -> Viewer:  # made once the input is open
                 made.append(
@@ -358,31 +229,48 @@ def build(
                 typer.echo("interrupted: partial mosaic and report written", err=True)
             elif run.error is not None:
                 typer.echo(f"error: {run.error}; the live mosaic and report written", err=True)
-            _print_summary(run.report, output, report_path)
+            typer.echo(summary_text(run.report, output, report_path))
             if rerun == "save":
                 typer.echo(f"recording: {rerun_target}")
     except KeyboardInterrupt:  # before the first frame or while writing: nothing to save
         typer.echo("interrupted", err=True)
         raise typer.Exit(EXIT_INTERRUPTED) from None
-    if run.interrupted:
-        raise typer.Exit(EXIT_INTERRUPTED)
-    if run.error is not None:
-        raise typer.Exit(EXIT_FAILED)
+    if run.interrupted or run.error is not None:
+        raise typer.Exit(EXIT_INTERRUPTED if run.interrupted else EXIT_FAILED)
     if rerun == "serve":
         _serve_until_interrupted(getattr(made[0] if made else None, "url", None))
 
 
+# `batch`'s options whose help takes lines
+BatchInput = Annotated[
+    Path,
+    typer.Argument(
+        metavar="INPUT",
+        help="Folder searched recursively for videos and folders of frames, or a CSV "
+        "manifest (columns video, optional config and id; patient and/or eye with visit: "
+        "each patient's visits compared onto the first).",
+    ),
+]
+CpusPerVideo = Annotated[
+    int | None,
+    typer.Option(
+        min=1,
+        help="Threads (local) or Ray num_cpus (ray) per video "
+        "(default: the cores shared by the workers; ray: 1).",
+    ),
+]
+Resume = Annotated[
+    bool,
+    typer.Option(
+        "--resume/--no-resume",
+        help="Skip videos whose report says complete (--no-resume redoes them).",
+    ),
+]
+
+
 @app.command()
 def batch(
-    source: Annotated[
-        Path,
-        typer.Argument(
-            metavar="INPUT",
-            help="Folder searched recursively for videos and folders of frames, or a CSV "
-            "manifest (columns video, optional config and id; patient and/or eye with visit: "
-            "each patient's visits compared onto the first).",
-        ),
-    ],
+    source: BatchInput,
     out_dir: Annotated[
         Path, typer.Option("--output", "-o", help="Output folder: OUT_DIR/<id>/ per video.")
     ],
@@ -404,21 +292,8 @@ def batch(
         float,
         typer.Option(min=1.0, help="ray: give up reaching --ray-address after this many seconds."),
     ] = 60.0,
-    cpus_per_video: Annotated[
-        int | None,
-        typer.Option(
-            min=1,
-            help="Threads (local) or Ray num_cpus (ray) per video "
-            "(default: the cores shared by the workers; ray: 1).",
-        ),
-    ] = None,
-    resume: Annotated[
-        bool,
-        typer.Option(
-            "--resume/--no-resume",
-            help="Skip videos whose report says complete (--no-resume redoes them).",
-        ),
-    ] = True,
+    cpus_per_video: CpusPerVideo = None,
+    resume: Resume = True,
     pattern: Annotated[
         str | None,
         typer.Option(
@@ -426,16 +301,16 @@ def batch(
         ),
     ] = None,
     rerun: Annotated[str, typer.Option(help="off | save (OUT_DIR/<id>/recording.rrd).")] = "off",
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    verbose: Verbose = False,
 ) -> None:
     """Build the mosaics of many videos: one folder per video, OUT_DIR/summary.csv / .json and
     a browsable OUT_DIR/index.html; patients' visits (manifest) compared onto the first into
     OUT_DIR/compare/. Exit 0: all built (and compared), 1: any not, 130: interrupted."""
     from mosaic.batch import run_batch
 
-    _setup_logging(verbose)
+    setup_logging(verbose)
     try:
-        with _user_errors(), _terminate_as_interrupt(children=True):
+        with _user_errors(), terminate_as_interrupt(children=True):
             config = load_config(config_path)
             result = run_batch(
                 source,
@@ -469,25 +344,92 @@ def batch(
         raise typer.Exit(EXIT_FAILED)
 
 
-def _parse_size(size: str) -> tuple[int, int]:
-    try:
-        width, height = (int(v) for v in size.lower().split("x"))
-    except ValueError:
-        raise InputError(f"size must look like 660x350, got {size!r}") from None
-    if width < 32 or height < 32:
-        raise InputError(f"size {size} is too small (at least 32x32)")
-    return width, height
+# `synth`'s options whose help takes lines
+SynthImage = Annotated[
+    Path | None,
+    typer.Argument(
+        help="Source fundus image, or a folder of them (the seed picks one); "
+        "default: the shipped CC0 sample."
+    ),
+]
+Realistic = Annotated[
+    bool,
+    typer.Option(
+        help="Like real magnified fundus video: 25-45 % of the source's view per frame, "
+        "its rim at times, strong vignetting, gain/gamma changes, blur/defocus/glare bursts. "
+        "Curved pairs: the aperture filled, each photograph as from its own visit (focus, "
+        "illumination, gamma, colour, lesions, noise, JPEG quality)."
+    ),
+]
+Interlaced = Annotated[
+    bool,
+    typer.Option(
+        help="As an interlaced camera: each frame's odd rows from half a frame interval "
+        "later (the truth is the even rows' pose)."
+    ),
+]
+LensReflexes = Annotated[
+    int,
+    typer.Option(
+        min=0,
+        help="N bright reflections of the fundus lens that stay near one place of the frame "
+        "(a few px of wander) while the retina moves under them.",
+    ),
+]
+DustSpots = Annotated[
+    int,
+    typer.Option(
+        min=0,
+        help="N out-of-focus dust spots on the sensor or lens: soft dark blobs fixed in the "
+        "frame (20-60 % of the light taken at their centre).",
+    ),
+]
+LensRim = Annotated[
+    bool,
+    typer.Option(
+        help="As through a handheld fundus lens: the retina only inside the lens's rim, a "
+        "disc that moves about the frame, the face out of focus around it.",
+    ),
+]
+HazeFrames = Annotated[
+    int,
+    typer.Option(
+        min=0,
+        help="The last N frames seen through haze: a veil of scattered light (contrast "
+        "down to 25-55 %), slightly blurred.",
+    ),
+]
+CurvedPairs = Annotated[
+    int,
+    typer.Option(
+        min=0,
+        help="Instead of a video: N pairs of photographs of a curved retina with exact "
+        "control points, in FIRE's layout, into the folder OUTPUT (pair i: source and "
+        "camera poses of seed + i).",
+    ),
+]
+TurnDeg = Annotated[
+    float,
+    typer.Option(
+        min=0.0,
+        max=40.0,
+        help="Curved pairs: the eye turns up to half this each way per photograph (the "
+        "larger, the less overlap and the more curvature between the two).",
+    ),
+]
+FollowupOf = Annotated[
+    Path | None,
+    typer.Option(
+        help="A follow-up visit of this synthetic baseline video (or its .gt.json): its "
+        "source with a new haemorrhage, a narrowed vessel and laser scars planted where both "
+        "videos look, the changes in the ground truth (`followup`; see compare.md).",
+    ),
+]
 
 
 @app.command()
 def synth(
-    image: Annotated[
-        Path | None,
-        typer.Argument(
-            help="Source fundus image, or a folder of them (the seed picks one); "
-            "default: the shipped CC0 sample."
-        ),
-    ] = None,
+    image: SynthImage = None,
     output: Annotated[Path, typer.Option("--output", "-o", help="Video (.mp4/.avi) or folder.")] = (
         Path("synthetic.mp4")
     ),
@@ -501,204 +443,48 @@ def synth(
     hard: Annotated[
         bool, typer.Option(help="Hard like real video: loops, fast motion, blur bursts, glare.")
     ] = False,
-    realistic: Annotated[
-        bool,
-        typer.Option(
-            help="Like real magnified fundus video: 25-45 % of the source's view per frame, "
-            "its rim at times, strong vignetting, gain/gamma changes, blur/defocus/glare bursts. "
-            "Curved pairs: the aperture filled, each photograph as from its own visit (focus, "
-            "illumination, gamma, colour, lesions, noise, JPEG quality)."
-        ),
-    ] = False,
-    interlaced: Annotated[
-        bool,
-        typer.Option(
-            help="As an interlaced camera: each frame's odd rows from half a frame interval "
-            "later (the truth is the even rows' pose)."
-        ),
-    ] = False,
-    lens_reflexes: Annotated[
-        int,
-        typer.Option(
-            min=0,
-            help="N bright reflections of the fundus lens that stay near one place of the frame "
-            "(a few px of wander) while the retina moves under them.",
-        ),
-    ] = 0,
-    dust_spots: Annotated[
-        int,
-        typer.Option(
-            min=0,
-            help="N out-of-focus dust spots on the sensor or lens: soft dark blobs fixed in the "
-            "frame (20-60 % of the light taken at their centre).",
-        ),
-    ] = 0,
-    lens_rim: Annotated[
-        bool,
-        typer.Option(
-            help="As through a handheld fundus lens: the retina only inside the lens's rim, a "
-            "disc that moves about the frame, the face out of focus around it.",
-        ),
-    ] = False,
-    haze_frames: Annotated[
-        int,
-        typer.Option(
-            min=0,
-            help="The last N frames seen through haze: a veil of scattered light (contrast "
-            "down to 25-55 %), slightly blurred.",
-        ),
-    ] = 0,
-    curved_pairs: Annotated[
-        int,
-        typer.Option(
-            min=0,
-            help="Instead of a video: N pairs of photographs of a curved retina with exact "
-            "control points, in FIRE's layout, into the folder OUTPUT (pair i: source and "
-            "camera poses of seed + i).",
-        ),
-    ] = 0,
-    turn_deg: Annotated[
-        float,
-        typer.Option(
-            min=0.0,
-            max=40.0,
-            help="Curved pairs: the eye turns up to half this each way per photograph (the "
-            "larger, the less overlap and the more curvature between the two).",
-        ),
-    ] = 16.0,
-    followup_of: Annotated[
-        Path | None,
-        typer.Option(
-            help="A follow-up visit of this synthetic baseline video (or its .gt.json): its "
-            "source with a new haemorrhage, a narrowed vessel and laser scars planted where both "
-            "videos look, the changes in the ground truth (`followup`; see compare.md).",
-        ),
-    ] = None,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    realistic: Realistic = False,
+    interlaced: Interlaced = False,
+    lens_reflexes: LensReflexes = 0,
+    dust_spots: DustSpots = 0,
+    lens_rim: LensRim = False,
+    haze_frames: HazeFrames = 0,
+    curved_pairs: CurvedPairs = 0,
+    turn_deg: TurnDeg = 16.0,
+    followup_of: FollowupOf = None,
+    verbose: Verbose = False,
 ) -> None:
     """Render a synthetic retinal video with ground-truth homographies (VIDEO.gt.json), or
     pairs of photographs of a curved retina with exact control points (--curved-pairs)."""
-    from mosaic.io import sample_image_path
-
-    _setup_logging(verbose)
+    setup_logging(verbose)
     with _user_errors():
-        if hard and realistic:
-            raise InputError("choose one of --hard and --realistic")
-        video_only = {"--interlaced": interlaced, "--lens-reflexes": lens_reflexes,
-                      "--dust-spots": dust_spots, "--lens-rim": lens_rim,
-                      "--haze-frames": haze_frames}  # fmt: skip
-        given = [name for name, value in video_only.items() if value]
-        if followup_of is not None:
-            given.append("--followup-of")
-        if curved_pairs and given:
-            raise InputError(f"{' and '.join(given)}: for videos, not --curved-pairs")
-        if curved_pairs:
-            _curved_pairs(
-                image or sample_image_path(), output, curved_pairs, seed, size, realistic, turn_deg
+        made = synthesize(
+            SynthRequest(
+                image=image,
+                output=output,
+                frames=frames,
+                size=size,
+                seed=seed,
+                clean=clean,
+                hard=hard,
+                realistic=realistic,
+                interlaced=interlaced,
+                lens_reflexes=lens_reflexes,
+                dust_spots=dust_spots,
+                lens_rim=lens_rim,
+                haze_frames=haze_frames,
+                curved_pairs=curved_pairs,
+                turn_deg=turn_deg,
+                followup_of=followup_of,
             )
-            return
-        make = SynthParams.hard if hard else SynthParams.realistic if realistic else SynthParams
-        params = make(
-            n_frames=frames,
-            size=_parse_size(size or "660x350"),
-            seed=seed,
-            nuisances=not clean,
-            interlaced=interlaced,
-            lens_reflexes=lens_reflexes,
-            dust_spots=dust_spots,
-            lens_rim=lens_rim,
-            haze_frames=haze_frames,
         )
-        edit = None
-        if followup_of is not None:  # the baseline's own photograph, changed
-            from mosaic.synthetic.followup import followup_hook, load_baseline_gt
-
-            baseline = load_baseline_gt(followup_of)
-            image = image or Path(baseline["source"])
-            edit = followup_hook(baseline, seed)
-        source = pick_source(image or sample_image_path(), seed)
-        gt = write_synthetic_video(source, output, params, edit)
-        typer.echo(f"video: {output}\nground truth: {gt}\nsource: {source}")
-
-
-def _curved_pairs(
-    image: Path,
-    output: Path,
-    n_pairs: int,
-    seed: int,
-    size: str | None,
-    realistic: bool,
-    turn_deg: float,
-) -> None:
-    """`synth --curved-pairs`: the pairs in FIRE's layout
-    (`mosaic.synthetic.curved.write_fire_folder`)."""
-    from mosaic.synthetic.curved import write_fire_folder
-
-    width, height = _parse_size(size or "2912x2912")
-    if width != height:
-        raise InputError(f"curved pairs are square: --size {size} is not")
-    sources = [pick_source(image, seed + i) for i in range(n_pairs)]
-    write_fire_folder(
-        sources, output, n_pairs, seed=seed, size=width, turn_deg=turn_deg, realistic=realistic
-    )
+    if made.ground_truth is not None:
+        typer.echo(f"video: {output}\nground truth: {made.ground_truth}\nsource: {made.sources[0]}")
+        return
     typer.echo(
-        f"{n_pairs} curved pairs: {output} (FIRE layout; {output / 'pairs.csv'} for "
-        f"mosaic register --pairs)\nsources: {', '.join(sorted({s.name for s in sources}))}"
+        f"{made.curved_pairs} curved pairs: {output} (FIRE layout; {output / 'pairs.csv'} for "
+        f"mosaic register --pairs)\nsources: {', '.join(sorted({s.name for s in made.sources}))}"
     )
-
-
-def _pair_result(
-    fixed: Path,
-    moving: Path,
-    config: Config,
-    extractor: FeatureExtractor,
-    model: str,
-    warp: Path | None = None,
-) -> dict[str, Any]:
-    images = read_image(fixed), read_image(moving)
-    registration = register_pair(*images, config, extractor, model)
-    H, Q = registration.H_moving_to_fixed, registration.Q_moving_to_fixed
-    if warp is not None and H is not None:
-        write_image(warp, warp_check(*images, H, Q))
-    scales = registration.working_scales
-    return {
-        **_pair_names(fixed, moving),
-        "status": "registered" if registration.ok else "failed",
-        "reason": registration.reason,
-        "H_moving_to_fixed": None if H is None else np.asarray(H).tolist(),
-        "Q_moving_to_fixed": None if Q is None else np.asarray(Q).tolist(),
-        "model": registration.model if registration.ok else None,
-        "working_scale": None if scales is None else {"moving": scales[0], "fixed": scales[1]},
-        "refined_levels": registration.refined_levels,
-        "inverted": next(
-            (n for n, i in zip(("moving", "fixed"), registration.inverted, strict=True) if i), None
-        ),
-        "n_matches": registration.n_matches,
-        "n_inliers": registration.n_inliers,
-        "residual_px": (
-            round(float(registration.reproj_error_px), 3)
-            if registration.ok and np.isfinite(registration.reproj_error_px)
-            else None
-        ),
-    }
-
-
-def _pair_names(fixed: Path, moving: Path) -> dict[str, str]:
-    return {"fixed": str(fixed), "moving": str(moving)}
-
-
-def _read_pairs(path: Path) -> list[tuple[Path, Path] | str]:
-    """The pairs of a CSV (paths relative to it); a row without both paths is its error."""
-    from mosaic.io import read_csv_rows
-
-    rows = read_csv_rows(path, "pairs file", ("fixed", "moving"))
-    base = path.parent
-    return [
-        (base / r["fixed"].strip(), base / r["moving"].strip())
-        if (r.get("fixed") or "").strip() and (r.get("moving") or "").strip()
-        else f"row {i + 2}: fixed and moving must both be given"
-        for i, r in enumerate(rows)
-    ]
 
 
 @app.command()
@@ -727,10 +513,10 @@ def register(
         Path | None,
         typer.Option(help="Image: both images side by side, keypoints and inlier matches drawn."),
     ] = None,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    verbose: Verbose = False,
 ) -> None:
     """Register MOVING onto FIXED and print H_moving_to_fixed (full-resolution pixels)."""
-    _setup_logging(verbose)
+    setup_logging(verbose)
     with _user_errors():
         if model not in ("auto", *PAIR_MODELS):
             raise InputError(
@@ -749,56 +535,57 @@ def register(
             warp = check_output_path(warp, IMAGE_WRITE_SUFFIXES)
         if matches is not None:
             matches = check_output_path(matches, IMAGE_WRITE_SUFFIXES)
-        config = for_photographs(_config(config_path, detector))
+        config = for_photographs(options_config(config_path, detector))
         extractor = FeatureExtractor(config.features)
         if pairs is not None:
-            from tqdm import tqdm
-
-            failed = 0
-            rows = _read_pairs(pairs)
-            for pair in tqdm(rows, unit="pair", desc="register", file=sys.stderr):
-                if isinstance(pair, str):  # a malformed row: one failed line, go on
-                    result = {"status": "failed", "reason": pair}
-                else:
-                    try:
-                        result = _pair_result(*pair, config, extractor, model)
-                    except MosaicError as exc:  # a missing or unreadable image
-                        result = {**_pair_names(*pair), "status": "failed", "reason": str(exc)}
-                    except Exception as exc:  # one pair's failure is its line; the rest go on
-                        log.info("pair %s, %s failed", *pair, exc_info=True)
-                        reason = f"internal error: {_one_line(exc)}"
-                        result = {**_pair_names(*pair), "status": "failed", "reason": reason}
-                failed += result["status"] != "registered"
-                tqdm.write(json.dumps(result), file=sys.stdout)  # above the bar on a terminal
-            typer.echo(
-                f"{len(rows)} pairs: {len(rows) - failed} registered, {failed} failed", err=True
-            )
-            if failed:
-                raise typer.Exit(1)
+            _register_pairs_file(pairs, config, extractor, model)
             return
         if fixed is None or moving is None:
             raise InputError("give FIXED and MOVING images, or --pairs PAIRS.csv")
-        result = _pair_result(fixed, moving, config, extractor, model, warp)
-        if matches is not None:  # keypoints and inlier matches of the pair (mosaic.viz)
-            from mosaic.viz import pair_matches_picture
-
-            H, Q = result["H_moving_to_fixed"], result["Q_moving_to_fixed"]
-            picture = pair_matches_picture(
-                read_image(fixed),
-                read_image(moving),
-                config,
-                extractor,
-                None if H is None else np.array(H),
-                None if Q is None else np.array(Q),
-                (result["inverted"] == "fixed", result["inverted"] == "moving"),
-            )
-            write_image(matches, picture)
-        if as_json:
-            typer.echo(json.dumps(result, indent=2))
-        else:
-            _print_pair(result)
+        result = pair_answer(fixed, moving, config, extractor, model, warp, matches)
+        typer.echo(json.dumps(result, indent=2) if as_json else pair_text(result))
     if result["status"] != "registered":
         raise typer.Exit(1)
+
+
+def _register_pairs_file(
+    pairs: Path, config: Config, extractor: FeatureExtractor, model: str
+) -> None:
+    """`register --pairs`: one JSON line per pair, the counts on stderr; exit 1 if any failed."""
+    from tqdm import tqdm
+
+    n_pairs = failed = 0
+    for result in pairs_file_answers(pairs, config, extractor, model):
+        n_pairs += 1
+        failed += result["status"] != "registered"
+        tqdm.write(json.dumps(result), file=sys.stdout)  # above the bar on a terminal
+    typer.echo(f"{n_pairs} pairs: {n_pairs - failed} registered, {failed} failed", err=True)
+    if failed:
+        raise typer.Exit(1)
+
+
+# `compare`'s options whose help takes lines
+Manifest = Annotated[
+    Path | None,
+    typer.Option(
+        help="CSV with columns patient,visit,path: each patient's later visits compared "
+        "onto the first, OUT/<patient>/<visit>/, summary.json and index.html.",
+    ),
+]
+CompareRerun = Annotated[
+    str,
+    typer.Option(
+        help=f"Rerun viewer: {' | '.join(VIEWER_MODES)}; baseline, warped follow-up and "
+        "change map as layers of one space."
+    ),
+]
+CompareRerunTarget = Annotated[
+    str | None,
+    typer.Option(
+        help="save: the .rrd file (default OUT_DIR/compare.rrd); "
+        "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
+    ),
+]
 
 
 @app.command()
@@ -813,31 +600,13 @@ def compare(
     output: Annotated[
         Path, typer.Option("--output", "-o", help="Folder for the pictures and compare.json.")
     ] = Path("compare"),
-    manifest: Annotated[
-        Path | None,
-        typer.Option(
-            help="CSV with columns patient,visit,path: each patient's later visits compared "
-            "onto the first, OUT/<patient>/<visit>/, summary.json and index.html.",
-        ),
-    ] = None,
+    manifest: Manifest = None,
     config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
     detector: Annotated[str | None, typer.Option(help=f"{', '.join(DETECTORS)}.")] = None,
-    rerun: Annotated[
-        str,
-        typer.Option(
-            help=f"Rerun viewer: {' | '.join(VIEWER_MODES)}; baseline, warped follow-up and "
-            "change map as layers of one space."
-        ),
-    ] = "off",
-    rerun_target: Annotated[
-        str | None,
-        typer.Option(
-            help="save: the .rrd file (default OUT_DIR/compare.rrd); "
-            "connect: the viewer's URL (default rerun+http://127.0.0.1:9876/proxy)."
-        ),
-    ] = None,
-    viewer_flag: Annotated[bool, typer.Option("--viewer", help="Short for --rerun spawn.")] = False,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    rerun: CompareRerun = "off",
+    rerun_target: CompareRerunTarget = None,
+    viewer_flag: ViewerFlag = False,
+    verbose: Verbose = False,
 ) -> None:
     """Put a follow-up visit on the baseline's map: the follow-up warped, a checkerboard, a
     two-colour overlay, a change map and compare.json (H/Q_followup_to_baseline, changed
@@ -845,7 +614,7 @@ def compare(
     from mosaic.compare import NotComparableError, not_compared, run_compare, run_manifest
     from mosaic.viz import make_compare_viewer
 
-    _setup_logging(verbose)
+    setup_logging(verbose)
     viewer = None
     with _user_errors():
         if manifest is not None:
@@ -853,7 +622,7 @@ def compare(
                 raise InputError("BASELINE and FOLLOWUP, or --manifest: not both")
             if rerun != "off" or viewer_flag:
                 raise InputError("the rerun viewer shows one pair: not with --manifest")
-            summary = run_manifest(manifest, output, _config(config_path, detector))
+            summary = run_manifest(manifest, output, options_config(config_path, detector))
             rows = [r for p in summary["patients"].values() for r in p["visits"]]
             missed = not_compared(summary["patients"])
             typer.echo(
@@ -866,10 +635,10 @@ def compare(
         if baseline is None or followup is None:
             raise InputError("give BASELINE and FOLLOWUP, or --manifest VISITS.csv")
         check_distinct_paths({"--output": output}, {"BASELINE": baseline, "FOLLOWUP": followup})
-        config = _config(config_path, detector)
+        config = options_config(config_path, detector)
         if rerun != "off" or viewer_flag:  # the folder first: the recording goes into it
             output.mkdir(parents=True, exist_ok=True)
-        rerun, rerun_target = _viewer_args(rerun, rerun_target, viewer_flag, output / "compare.rrd")
+        rerun, rerun_target = viewer_args(rerun, rerun_target, viewer_flag, output / "compare.rrd")
         viewer = make_compare_viewer(rerun, rerun_target)
         if getattr(viewer, "url", None):
             typer.echo(f"rerun viewer: {viewer.url}")  # type: ignore[attr-defined]
@@ -893,31 +662,6 @@ def compare(
         _serve_until_interrupted(getattr(viewer, "url", None))
 
 
-def _print_pair(result: dict[str, Any]) -> None:
-    """The human-readable answer of `register` for one pair (a failed pair has no model and
-    no residual: those are left out, not printed as None)."""
-    reason = f" ({result['reason']})" if result["reason"] else ""
-    typer.echo(f"status: {result['status']}{reason}")
-    counts = f"matches: {result['n_matches']}  inliers: {result['n_inliers']}"
-    if result["model"] is not None:
-        counts = f"model: {result['model']}  {counts}"
-    if result["residual_px"] is not None:
-        counts += f"  residual: {result['residual_px']:.2f} px"
-    typer.echo(counts)
-    if result["working_scale"] is not None:
-        s = result["working_scale"]
-        typer.echo(
-            f"working scale: fixed {s['fixed']:.3f}, moving {s['moving']:.3f}  "
-            f"refined levels: {result['refined_levels']}"
-        )
-    if result["Q_moving_to_fixed"] is not None:
-        Q = np.array(result["Q_moving_to_fixed"])
-        typer.echo("Q_moving_to_fixed:\n" + np.array2string(Q, precision=9, suppress_small=False))
-    if result["H_moving_to_fixed"] is not None:
-        H = np.array(result["H_moving_to_fixed"])
-        typer.echo("H_moving_to_fixed:\n" + np.array2string(H, precision=6, suppress_small=True))
-
-
 @app.command()
 def evaluate(
     inputs: Annotated[
@@ -930,11 +674,9 @@ def evaluate(
     out: Annotated[Path, typer.Option(help="Folder for the tables (CSV, JSON) and plots.")] = Path(
         "evaluation"
     ),
-    config_path: Annotated[
-        Path | None, typer.Option("--config", "-c", help="TOML config (see sample_config.toml).")
-    ] = None,
-    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames (0: all).")] = None,
-    step: Annotated[int | None, typer.Option(help="Process every K-th frame.")] = None,
+    config_path: ConfigFile = None,
+    max_frames: MaxFrames = None,
+    step: Step = None,
     strategy: Annotated[
         str,
         typer.Option(help="Comma-separated strategies: keyframes, chain (the paper's)."),
@@ -954,7 +696,7 @@ def evaluate(
             "itself there, paired over the videos both runs hold (e.g. before / after a change).",
         ),
     ] = None,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    verbose: Verbose = False,
 ) -> None:
     """Compare detectors and strategies on videos: frames until failure, accuracy vs
     VIDEO.gt.json, drift, speed; paired differences with bootstrap intervals."""
@@ -962,15 +704,15 @@ def evaluate(
     from mosaic.eval.video_eval import run_video_evaluation
     from mosaic.eval.video_tables import format_video_tables, load_video_results
 
-    _setup_logging(verbose)
+    setup_logging(verbose)
     with _user_errors(), logging_redirect_tqdm():
-        config = _config(config_path, None, max_frames=max_frames, step=step)
+        config = options_config(config_path, None, max_frames=max_frames, step=step)
         strategies = [name.strip() for name in strategy.split(",") if name.strip()]
         for name in strategies:
             with_overrides(config, pipeline={"strategy": name})  # validates the name
         names = parse_detectors(detector)
         if detector is not None:
-            _require_detectors(config, names)
+            require_detectors(config, names)
         previous = load_video_results(against) if against is not None else []
         results, summary = run_video_evaluation(
             inputs,
@@ -987,6 +729,25 @@ def evaluate(
         typer.echo(f"tables and plots: {out}")
 
 
+# `bench`'s options whose help takes lines
+WholeBuild = Annotated[
+    bool,
+    typer.Option(
+        "--build/--no-build",
+        help="Also time the whole `mosaic build` (re-render, written mosaic and report) of a "
+        "realistic synthetic video of FRAMES frames with the first detector, next to its "
+        "streaming rate.",
+    ),
+]
+Profile = Annotated[
+    int,
+    typer.Option(
+        help="Also print a cProfile of the first detector (serial run): the N functions "
+        "with the most own time (0: none)."
+    ),
+]
+
+
 @app.command()
 def bench(
     size: Annotated[str, typer.Option(help="Frame size WIDTHxHEIGHT.")] = "660x350",
@@ -1000,15 +761,7 @@ def bench(
     ] = None,
     config_path: Annotated[Path | None, typer.Option("--config", "-c")] = None,
     rerun: Annotated[bool, typer.Option(help="Also measure the --rerun save overhead.")] = True,
-    whole_build: Annotated[
-        bool,
-        typer.Option(
-            "--build/--no-build",
-            help="Also time the whole `mosaic build` (re-render, written mosaic and report) of a "
-            "realistic synthetic video of FRAMES frames with the first detector, next to its "
-            "streaming rate.",
-        ),
-    ] = True,
+    whole_build: WholeBuild = True,
     scales: Annotated[
         str,
         typer.Option(help="Comma-separated detection scales to time for the first detector."),
@@ -1016,26 +769,21 @@ def bench(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print JSON instead of the table.")
     ] = False,
-    profile: Annotated[
-        int,
-        typer.Option(
-            help="Also print a cProfile of the first detector (serial run): the N functions "
-            "with the most own time (0: none)."
-        ),
-    ] = 0,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=VERBOSE_HELP)] = False,
+    profile: Profile = 0,
+    verbose: Verbose = False,
 ) -> None:
     """Time the whole pipeline per detector on a synthetic video (ms per stage, frames/s)."""
     from mosaic.eval.bench import (
+        bench_document,
         environment,
-        format_build_table,
-        format_table,
+        format_bench,
+        parse_scales,
         profile_pipeline,
         run_bench,
         run_build_bench,
     )
 
-    _setup_logging(verbose)
+    setup_logging(verbose)
     with _user_errors():
         names = [name.strip() for name in (detector or BENCH_DETECTORS).split(",") if name.strip()]
         unknown = [name for name in names if name not in DETECTORS]
@@ -1043,13 +791,8 @@ def bench(
             raise MosaicError(f"unknown detector(s) {', '.join(unknown)}")
         config = load_config(config_path)
         if detector is not None:  # before the video is made: named detectors must load
-            _require_detectors(config, names)
-        try:
-            scale_values = [float(v) for v in scales.split(",") if v.strip()]
-        except ValueError:
-            raise MosaicError(f"--scales must be numbers like 0.75,0.5, got {scales!r}") from None
-        if any(not 0 < v <= 1 for v in scale_values):
-            raise MosaicError(f"--scales must lie in (0, 1], got {scales!r}")
+            require_detectors(config, names)
+        scale_values = parse_scales(scales)
         factory = None
         if rerun:
 
@@ -1058,7 +801,7 @@ def bench(
 
         rows = run_bench(
             names,
-            _parse_size(size),
+            parse_size(size),
             frames,
             config,
             factory,
@@ -1071,38 +814,15 @@ def bench(
         builds = []
         if whole_build:
             typer.echo(f"running {rows[0].detector} (mosaic build) ...", err=True)
-            builds.append(run_build_bench(rows[0].detector, _parse_size(size), frames, config))
+            builds.append(run_build_bench(rows[0].detector, parse_size(size), frames, config))
         env = environment()
         if as_json:
-            whole = [
-                {**r.__dict__, "streaming_fps": r.streaming_fps, "whole_fps": r.whole_fps}
-                for r in builds
-            ]
-            document = {"environment": env, "rows": [r.__dict__ for r in rows], "builds": whole}
-            typer.echo(json.dumps(document))
+            typer.echo(json.dumps(bench_document(rows, builds, env)))
             return
-        typer.echo(format_table(rows))
-        notes = [f"{r.name}: {r.notes}" for r in rows if r.notes]
-        typer.echo(
-            "ms per stage (median); frame = wall time per registered frame, p90 over frames; "
-            "x sift = fps ratio; ovl = extraction of the next frame overlapped (default rows: "
-            f"as [pipeline] overlap chose). {'; '.join(notes)}"
-        )
-        if builds:
-            typer.echo("\n" + format_build_table(builds))
-            typer.echo(
-                "stream = start of the run to the last frame registered; wall = to the mosaic "
-                "and report written (model loaded before); x stream = whole fps / stream fps"
-            )
-        typer.echo("environment: " + ", ".join(f"{k}={v}" for k, v in env.items()))
+        typer.echo(format_bench(rows, builds, env))
         if profile:
             typer.echo(f"\nprofile of {names[0]} (serial run, {frames} frames):")
-            typer.echo(profile_pipeline(names[0], _parse_size(size), frames, config, profile))
-
-
-def _one_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+            typer.echo(profile_pipeline(names[0], parse_size(size), frames, config, profile))
 
 
 def main() -> None:
@@ -1112,5 +832,5 @@ def main() -> None:
         app()
     except Exception as exc:
         log.info("internal error", exc_info=True)
-        typer.echo(f"error: internal error: {_one_line(exc)} (-v shows the traceback)", err=True)
+        typer.echo(f"error: internal error: {one_line(exc)} (-v shows the traceback)", err=True)
         raise SystemExit(EXIT_FAILED) from None

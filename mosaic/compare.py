@@ -39,7 +39,13 @@ import numpy as np
 from mosaic.config import Config, for_photographs
 from mosaic.errors import InputError, MosaicError
 from mosaic.features import FeatureExtractor
-from mosaic.geometry import apply_homography, apply_quadratic, quadratic_terms
+from mosaic.geometry import (
+    apply_homography,
+    apply_quadratic,
+    pixel_centre_corners,
+    pixel_scale,
+    quadratic_terms,
+)
 from mosaic.io import (
     IMAGE_READ_SUFFIXES,
     make_folder,
@@ -190,7 +196,7 @@ def covered_area(image: np.ndarray, report: dict[str, Any] | None = None) -> np.
     w, h = (report.get("input") or {}).get("width"), (report.get("input") or {}).get("height")
     main = report.get("main_segment", 0)
     if frames and w and h:
-        corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
+        corners = pixel_centre_corners((h, w))
         placed = np.zeros_like(mask)
         for f in frames:
             if f.get("H_to_canvas") is not None and f.get("segment") == main:
@@ -231,7 +237,8 @@ def load_visit(
         if not run.complete or run.result.main is None:
             raise InputError(f"the {name} video gave no mosaic: {run.error or 'interrupted'}")
         image = run.result.main.image
-        return Visit(name, path, "video", image, covered_area(image, run.report), outputs.report)
+        covered = covered_area(image, run.report.to_dict())  # the report as its JSON
+        return Visit(name, path, "video", image, covered, outputs.report)
     if suffix not in IMAGE_READ_SUFFIXES:
         raise InputError(f"{name} must be a video, a frame folder or an image: {path}")
     image = read_image(path)
@@ -411,11 +418,6 @@ class _Aligned:
     correlation: float
 
 
-def _pixel_scale(k: float) -> np.ndarray:
-    """The map of pixels into an image resized by `k` (`cv2.resize`: pixel centres)."""
-    return np.array([[k, 0, 0.5 * k - 0.5], [0, k, 0.5 * k - 0.5], [0, 0, 1.0]])
-
-
 def _resized(image: np.ndarray, mask: np.ndarray, k: float) -> np.ndarray:
     """The image, black outside `mask`, resized by `k`."""
     image = np.where(mask[..., None], image, 0).astype(np.uint8)
@@ -458,7 +460,7 @@ def _rescaled(
     H: np.ndarray, Q: np.ndarray | None, kb: float, kf: float, shape: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """A registration of the visits resized by (kb, kf) in the visits' own pixels."""
-    Sb, Sf = _pixel_scale(kb), _pixel_scale(kf)
+    Sb, Sf = pixel_scale(kb), pixel_scale(kf)
     H = np.linalg.inv(Sb) @ H @ Sf
     if Q is None:
         return H / H[2, 2], None

@@ -1,5 +1,5 @@
 """Points and transforms, written once: homographies and quadratics applied to points, a
-frame's corners, pixel-centre rescaling, the frame-centred normalisation that fits are
+frame's corners, translations, pixel-centre rescaling, the frame-centred normalisation that fits are
 conditioned in, Huber weights for re-weighted fits, and the corner error that scores an
 estimate against the truth.
 
@@ -40,6 +40,13 @@ def frame_corners(shape: tuple[int, ...]) -> np.ndarray:
     return np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64)
 
 
+def pixel_centre_corners(shape: tuple[int, ...]) -> np.ndarray:
+    """The centres of the four corner pixels (x, y) of an image of `shape` (h, w): (0, 0) to
+    (w - 1, h - 1), where a warp samples them (`frame_corners` is the outline)."""
+    h, w = shape[:2]
+    return np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
+
+
 def rescaled(xy: np.ndarray, s: float | np.ndarray) -> np.ndarray:
     """Points of an image in the pixels of that image resized by `s` (a factor or (sx, sy)):
     pixel centres map as (x + 0.5) s - 0.5."""
@@ -51,6 +58,23 @@ def scale_matrix(shape_full: tuple[int, ...], shape_scaled: tuple[int, ...]) -> 
     sy = shape_scaled[0] / shape_full[0]
     sx = shape_scaled[1] / shape_full[1]
     return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def circle_unscaled(circle: tuple[float, float, float], s: float) -> tuple[float, float, float]:
+    """A circle (cx, cy, r) found in an image resized by `s`, in the original's pixels."""
+    cx, cy, r = circle
+    return (cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5, r / s
+
+
+def pixel_scale(s: float) -> np.ndarray:
+    """H of a resize by the factor `s` (3x3 float64): pixel centres map as x' = (x + 0.5) s - 0.5,
+    as `cv2.resize` samples."""
+    return np.array([[s, 0.0, 0.5 * s - 0.5], [0.0, s, 0.5 * s - 0.5], [0.0, 0.0, 1.0]])
+
+
+def translation(tx: float, ty: float) -> np.ndarray:
+    """3x3 float64 translation matrix by (tx, ty) pixels."""
+    return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty], [0.0, 0.0, 1.0]])
 
 
 def frame_normaliser(shape: tuple[int, int]) -> np.ndarray:
@@ -101,4 +125,5 @@ __all__ = [
     "relative_homographies",
     "rescaled",
     "scale_matrix",
+    "translation",
 ]

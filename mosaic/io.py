@@ -82,6 +82,14 @@ class Frame:
 # --------------------------------------------------------------------------------------------
 
 
+def expected_frames(info: VideoInfo, step: int, max_frames: int) -> int | None:
+    """Frames a run will read (after `step` and `max_frames`), None if the input does not say."""
+    if info.n_frames is None:
+        return max_frames or None
+    n = -(-info.n_frames // step)
+    return min(n, max_frames) if max_frames else n
+
+
 def to_bgr8(image: np.ndarray) -> np.ndarray:
     """Convert grey / BGRA / 16-bit / float images to BGR uint8 HxWx3, as the pipeline expects."""
     if image.dtype != np.uint8:
@@ -169,10 +177,7 @@ class FrameSource:
     @property
     def expected_frames(self) -> int | None:
         """Number of frames iteration will yield (after step/max_frames), None if unknown."""
-        if self.info.n_frames is None:
-            return self.max_frames or None
-        n = -(-self.info.n_frames // self.step)
-        return min(n, self.max_frames) if self.max_frames else n
+        return expected_frames(self.info, self.step, self.max_frames)
 
     def __iter__(self) -> Iterator[Frame]:
         if self._closed:

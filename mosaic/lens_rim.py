@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from mosaic.config import PreprocessConfig
-from mosaic.geometry import rescaled
+from mosaic.geometry import circle_unscaled, rescaled
 from mosaic.preprocess import Prepared, erode_by_disc
 
 Circle = tuple[float, float, float]  # (cx, cy, r) px
@@ -227,8 +227,7 @@ def find_lens_rim(image: np.ndarray, view: np.ndarray, near: Circle | None = Non
         fit = _check_rim(small, lit, circle, fixed_radius)
         if fit.support >= RIM_KEEP.support:  # once more, about the circle it fits
             fit = _check_rim(small, lit, fit.circle, fixed_radius)
-        cx, cy, r = fit.circle
-        return dataclasses.replace(fit, circle=((cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5, r / s))
+        return dataclasses.replace(fit, circle=circle_unscaled(fit.circle, s))
 
     def is_near(fit: RimFit) -> bool:
         assert near is not None

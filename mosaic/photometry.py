@@ -118,6 +118,11 @@ class SideBandDetector:
     def n_frames(self) -> int:
         return self._n
 
+    @property
+    def shape(self) -> tuple[int, int] | None:
+        """(h, w) of the frames the bands were measured on (None before the first)."""
+        return self._shape
+
     def add(self, image: np.ndarray, mask: np.ndarray | None = None) -> None:
         """Take one frame (BGR or grey uint8) and its valid mask (nonzero = field of view)."""
         g = image if image.ndim == 2 else cv2.extractChannel(image, 1)
@@ -375,7 +380,7 @@ class VideoPhotometry:
 
     def frame_mask(self, mask: np.ndarray) -> np.ndarray:
         """`mask` (uint8) without the side bands."""
-        if not self._bands.any() or mask.shape != self.band_detector._shape:
+        if not self._bands.any() or mask.shape != self.band_detector.shape:
             return mask
         return np.where(self._bands.keep(mask.shape), mask, np.uint8(0))
 

@@ -28,13 +28,8 @@ import cv2
 import numpy as np
 
 from mosaic.camera_fixed import OverlayMask, ReflexMask, Spots
-from mosaic.compose import (
-    Canvas,
-    FrameSource,
-    LiveCompositor,
-    ReadAhead,
-    render_segments,
-)
+from mosaic.canvas import Canvas
+from mosaic.compose import LiveCompositor
 from mosaic.config import Config
 from mosaic.errors import CanvasLimitError
 from mosaic.features import FeatureExtractor, Features
@@ -52,6 +47,7 @@ from mosaic.preprocess import (
 )
 from mosaic.quality import frame_vs_canvas
 from mosaic.registration import Registration
+from mosaic.render import FrameSource, ReadAhead, render_segments
 from mosaic.report import (
     FAILED,
     REGISTERED,
@@ -425,7 +421,7 @@ class MosaicBuilder:
 
     def _rerender(self, frames: FrameSource) -> None:
         """Render refined segments again from the video's registered frames (`frames`,
-        `_masked_frames`): one or two more passes over them (`compose.render_segments`).
+        `_masked_frames`): one or two more passes over them (`render.render_segments`).
         Later segments the camera came back from are rendered into the first
         (`Segments.joined_poses`); they join it only where that rendering succeeds."""
         segments = self.segments

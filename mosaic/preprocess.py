@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from mosaic.config import GatingConfig, PreprocessConfig
-from mosaic.geometry import scale_matrix
+from mosaic.geometry import circle_unscaled, scale_matrix
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +171,7 @@ def retina_disc(image: np.ndarray) -> tuple[float, float, float] | None:
         or not mask[int(np.clip(cy, 0, mask.shape[0] - 1)), int(np.clip(cx, 0, mask.shape[1] - 1))]
     ):
         return None
-    return (cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5, r / s
+    return circle_unscaled((cx, cy, r), s)
 
 
 def _border_threshold(image: np.ndarray) -> float:

@@ -23,7 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mosaic.compose import Canvas
+from mosaic.canvas import Canvas
 from mosaic.config import ComposeConfig, PreprocessConfig
 from mosaic.geometry import apply_homography, corner_error, relative_homographies
 from mosaic.preprocess import prepare, to_working_size

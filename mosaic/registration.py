@@ -34,6 +34,7 @@ from mosaic.features import failure_reason
 from mosaic.geometry import (
     apply_homography,
     apply_quadratic,
+    frame_corners,
     frame_normaliser,
     huber_weights,
     normalised,
@@ -428,7 +429,7 @@ def estimate_motion(
         return consensus
     T = frame_normaliser(shape)
     a_all, b_all = normalised(T, xy_cur), normalised(T, xy_prev)
-    corners = normalised(T, np.array([[0, 0], [shape[1], 0], [shape[1], shape[0]], [0, shape[0]]]))
+    corners = normalised(T, frame_corners(shape))
     M = T @ consensus.H_moving_to_fixed @ np.linalg.inv(T)
     threshold = config.reproj_threshold_px * T[0, 0]
     huber = HUBER_PX * T[0, 0]

@@ -36,20 +36,6 @@ STAGES = ("preprocess", "detect", "describe", "match", "estimate", "compose")
 REGISTERED, FAILED, SKIPPED = "registered", "failed", "skipped"
 
 
-class _JsonKeys:
-    """Reading by JSON key (`report["summary"]["registered"]`): the JSON form, for the callers
-    not yet on the fields (`evaluate` and `bench`, issue 42); goes once they read the fields."""
-
-    def to_dict(self) -> dict[str, Any]:
-        raise NotImplementedError
-
-    def __getitem__(self, key: str) -> Any:
-        return self.to_dict()[key]
-
-    def get(self, key: str, default: Any = None) -> Any:
-        return self.to_dict().get(key, default)
-
-
 def _present(**items: Any) -> dict[str, Any]:
     """The items whose value is not None: keys a report leaves out rather than write null."""
     return {k: v for k, v in items.items() if v is not None}
@@ -164,7 +150,7 @@ class TrackingSummary:
 
 
 @dataclass(frozen=True)
-class Summary(_JsonKeys):
+class Summary:
     """`summary`: the run in figures. `complete`, `checkpoint`, `error` and `wall_time_s` are
     the writer's (`runner`): None until written (and `error` None: no error), left out then.
     Read from a report that predates them, the counts are 0, the flags False and the rest
@@ -349,7 +335,7 @@ class ComposeReport:
 
 
 @dataclass(frozen=True, kw_only=True)
-class BuildReport(_JsonKeys):
+class BuildReport:
     """The whole report. `build_report` makes it; the writer (`runner`) adds the input, the
     written files (`mosaic`, `main_segment`, `thumbnail`, each segment's `mosaic`) and the
     summary's completeness. `compose` is None only in a report that predates it."""

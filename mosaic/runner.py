@@ -47,6 +47,7 @@ from mosaic.io import (
     FrameSource,
     VideoInfo,
     check_output_path,
+    expected_frames,
     open_frames,
     write_image,
     write_json,
@@ -72,14 +73,6 @@ def is_frame_folder(path: Path) -> bool:
     return path.is_dir() and any(
         f.suffix.lower() in IMAGE_READ_SUFFIXES and f.is_file() for f in path.iterdir()
     )
-
-
-def expected_frames(info: VideoInfo, step: int, max_frames: int) -> int | None:
-    """Frames a run will read (after `step` and `max_frames`), None if the input does not say."""
-    if info.n_frames is None:
-        return max_frames or None
-    n = -(-info.n_frames // step)
-    return min(n, max_frames) if max_frames else n
 
 
 def reread_frames(
@@ -141,7 +134,9 @@ class VideoRun:
         return self.report.summary
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
+    """An exception as `Type: first line of its text`, for a one-line message (a run's
+    error, a pair's failure, the command line's internal error)."""
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
 
@@ -270,7 +265,7 @@ def run_video(
         except Exception as exc:
             if not salvage:
                 raise
-            error = f"failed while registering: {_one_line(exc)}"
+            error = f"failed while registering: {one_line(exc)}"
             log.info("%s; writing the mosaic so far", error, exc_info=True)
     if interrupted or error is not None:
         result = builder.finish(interrupted=True)
@@ -299,7 +294,7 @@ def _finish(
     except Exception as exc:
         if not salvage:
             raise
-        error = f"failed while refining / rendering: {_one_line(exc)}"
+        error = f"failed while refining / rendering: {one_line(exc)}"
         log.info("%s; writing the live mosaic and unrefined poses", error, exc_info=True)
         return error
 

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mosaic.compose import Canvas
+from mosaic.canvas import Canvas
 from mosaic.config import Config
 from mosaic.report import FAILED
 from mosaic.tracking import Track, Tracker, make_tracker

@@ -64,8 +64,8 @@ from mosaic.config import config_to_dict
 from mosaic.errors import ConfigError, OutputError
 
 if TYPE_CHECKING:
+    from mosaic.canvas import Canvas
     from mosaic.compare import Comparison
-    from mosaic.compose import Canvas
     from mosaic.config import Config
     from mosaic.io import VideoInfo
     from mosaic.pipeline import FrameEvent

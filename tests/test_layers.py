@@ -5,7 +5,8 @@ those inside functions included:
   the edges that offer every command) import neither `mosaic.eval` nor `mosaic.synthetic`;
 - at most two `mosaic` modules import `glampoints`: the detector adapter (`mosaic.features`)
   and the `glampoints` command line (`mosaic.glampoints_cli`);
-- no `glampoints` module imports `mosaic`: the model package knows no videos.
+- no `glampoints` module imports `mosaic`: the model package knows no videos;
+- no module reads another's private names (`from m import _x`, `m._x`, `obj._x`).
 
 Each check is a pure function of the sources and is shown to catch a fake import.
 """
@@ -122,3 +123,41 @@ def test_no_glampoints_module_imports_mosaic():
     # the check catches a lazy import of the application's I/O
     sources["glampoints.training"] += "\ndef f():\n    from mosaic.io import same_file\n"
     assert importers_of(sources, "mosaic") == {"glampoints.training"}
+
+
+# objects whose private attributes are their own class's: self and cls, and `other` in the
+# methods that build a copy of their own class; torch's module tree and its fused kernels
+OWN = {"self", "cls", "other", "super()"}
+THIRD_PARTY = ("torch.", "module._modules", "mk.", "os._exit")
+
+
+def private_reads(sources: dict[str, str]) -> list[str]:
+    """`module: expression` for each private (single underscore) name a module reads from
+    another module or object."""
+    reads = []
+    for module, source in sources.items():
+        for node in ast.walk(ast.parse(source)):
+            if isinstance(node, ast.ImportFrom):
+                reads += [
+                    f"{module}: from {node.module} import {alias.name}"
+                    for alias in node.names
+                    if alias.name.startswith("_") and not alias.name.startswith("__")
+                ]
+            elif isinstance(node, ast.Attribute) and node.attr.startswith("_"):
+                owner = ast.unparse(node.value)
+                text = f"{owner}.{node.attr}"
+                if node.attr.startswith("__") or owner in OWN or text.startswith(THIRD_PARTY):
+                    continue
+                reads.append(f"{module}: {text}")
+    return sorted(reads)
+
+
+def test_no_module_reads_private_names_of_another():
+    sources = {**package_sources("mosaic"), **package_sources("glampoints")}
+    assert private_reads(sources) == []
+    # the check catches a private import and a private attribute read
+    sources["mosaic.batch"] += "\nfrom mosaic.pipeline import _x\ny = builder._records\n"
+    assert private_reads(sources) == [
+        "mosaic.batch: builder._records",
+        "mosaic.batch: from mosaic.pipeline import _x",
+    ]

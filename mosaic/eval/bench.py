@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from mosaic.config import Config, with_overrides
-from mosaic.errors import ConfigError, DetectorWeightsError
+from mosaic.errors import ConfigError, DetectorWeightsError, MosaicError
 from mosaic.features import FeatureExtractor, cpu_has_native_bfloat16, resolve_precision
 from mosaic.io import Frame, sample_image_path
 from mosaic.pipeline import FrameRecord
@@ -144,10 +144,10 @@ def run_variant(
         stage_ms=stage_ms,
         frame_ms=_median_p90(frame_ms),
         fps=timed / elapsed if elapsed > 0 else float("nan"),
-        registered=summary["registered"],
-        frames=summary["frames_read"],
+        registered=summary.registered,
+        frames=summary.frames_read,
         peak_rss_mb=_peak_rss_mb(),
-        overlap=summary["overlap"],
+        overlap=summary.overlap,
     )
 
 
@@ -193,8 +193,8 @@ def run_build(
         wall = time.perf_counter() - started
     return BuildRow(
         name=name,
-        frames=run.summary["frames_read"],
-        registered=run.summary["registered"],
+        frames=run.summary.frames_read,
+        registered=run.summary.registered,
         streaming_s=last - started,
         wall_s=wall,
     )
@@ -388,3 +388,45 @@ def environment() -> dict[str, Any]:
         "opencv_threads": cv2.getNumThreads(),
         "cuda": torch.cuda.is_available(),
     }
+
+
+def parse_scales(text: str) -> list[float]:
+    """`mosaic bench --scales`: comma-separated detection scales, each in (0, 1]."""
+    try:
+        scales = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise MosaicError(f"--scales must be numbers like 0.75,0.5, got {text!r}") from None
+    if any(not 0 < v <= 1 for v in scales):
+        raise MosaicError(f"--scales must lie in (0, 1], got {text!r}")
+    return scales
+
+
+def bench_document(
+    rows: list[BenchRow], builds: list[BuildRow], env: dict[str, Any]
+) -> dict[str, Any]:
+    """What `mosaic bench --json` prints: the environment, the rows, the whole builds (with
+    their rates)."""
+    whole = [
+        {**r.__dict__, "streaming_fps": r.streaming_fps, "whole_fps": r.whole_fps} for r in builds
+    ]
+    return {"environment": env, "rows": [r.__dict__ for r in rows], "builds": whole}
+
+
+def format_bench(rows: list[BenchRow], builds: list[BuildRow], env: dict[str, Any]) -> str:
+    """What `mosaic bench` prints: the variants' table and its legend (with each variant's
+    notes), the whole builds' table and its legend, the environment."""
+    notes = [f"{r.name}: {r.notes}" for r in rows if r.notes]
+    parts = [
+        format_table(rows),
+        "ms per stage (median); frame = wall time per registered frame, p90 over frames; "
+        "x sift = fps ratio; ovl = extraction of the next frame overlapped (default rows: "
+        f"as [pipeline] overlap chose). {'; '.join(notes)}",
+    ]
+    if builds:
+        parts.append("\n" + format_build_table(builds))
+        parts.append(
+            "stream = start of the run to the last frame registered; wall = to the mosaic "
+            "and report written (model loaded before); x stream = whole fps / stream fps"
+        )
+    parts.append("environment: " + ", ".join(f"{k}={v}" for k, v in env.items()))
+    return "\n".join(parts)

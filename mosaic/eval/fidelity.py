@@ -33,9 +33,10 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from mosaic.compose import Canvas
+from mosaic.canvas import Canvas
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
+from mosaic.geometry import pixel_centre_corners, translation
 from mosaic.preprocess import erode_by_disc
 from mosaic.registration import apply_homography as transform
 
@@ -154,8 +155,9 @@ def frame_grid(frame_size: tuple[int, int], n: int = GRID_POINTS) -> np.ndarray:
     return np.stack([xs.ravel(), ys.ravel()], axis=1)
 
 
-def _normaliser(xy: np.ndarray) -> np.ndarray:
-    """Hartley's normalisation: centroid to 0, mean distance to it sqrt(2)."""
+def _hartley_normaliser(xy: np.ndarray) -> np.ndarray:
+    """Hartley's normalisation of a point cloud: centroid to 0, mean distance to it sqrt(2)
+    (not `geometry.frame_normaliser`, which a frame's shape fixes)."""
     centre = xy.mean(axis=0)
     spread = float(np.linalg.norm(xy - centre, axis=1).mean())
     s = math.sqrt(2.0) / max(spread, 1e-12)
@@ -174,7 +176,7 @@ def fit_homography(
     src, dst = np.asarray(src_xy, np.float64), np.asarray(dst_xy, np.float64)
     if len(src) < 4 or src.shape != dst.shape:
         raise ValueError(f"need >= 4 point pairs of equal shape, got {src.shape}, {dst.shape}")
-    T_src, T_dst = _normaliser(src), _normaliser(dst)
+    T_src, T_dst = _hartley_normaliser(src), _hartley_normaliser(dst)
     H0, _ = cv2.findHomography(src, dst, 0)  # least squares: the start
     if H0 is None:
         raise ValueError("degenerate point pairs: no homography")
@@ -216,20 +218,11 @@ def fit_canvas_to_source(
 # --------------------------------------------------------------------------------------------
 
 
-def _translation(tx: float, ty: float) -> np.ndarray:
-    return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty], [0.0, 0.0, 1.0]])
-
-
-def _frame_corners(frame_size: tuple[int, int]) -> np.ndarray:
-    w, h = frame_size
-    return np.array([[0.0, 0.0], [w - 1.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0]])
-
-
 def _footprint_corners(
     H_frames_to_canvas: Sequence[np.ndarray], frame_size: tuple[int, int]
 ) -> list[np.ndarray]:
     """Each frame's four corners in the canvas; frames sent (partly) to infinity are left out."""
-    corners = np.c_[_frame_corners(frame_size), np.ones(4)]
+    corners = np.c_[pixel_centre_corners(frame_size[::-1]), np.ones(4)]
     out = []
     for H in H_frames_to_canvas:
         mapped = corners @ np.asarray(H, np.float64).T
@@ -291,7 +284,7 @@ def score_mosaic(
             )
         x0, y0 = min(x0, int(lo[0])), min(y0, int(lo[1]))
         x1, y1 = max(x1, int(hi[0])), max(y1, int(hi[1]))
-    T = _translation(-float(x0), -float(y0))  # canvas -> box pixels
+    T = translation(-float(x0), -float(y0))  # canvas -> box pixels
     box_shape = (y1 - y0, x1 - x0)
     scanned = footprints_mask([transform(T, q) for q in quads], box_shape)
     scanned &= _warp_fov(source, H_c2s @ np.linalg.inv(T), box_shape)

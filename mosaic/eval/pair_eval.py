@@ -41,7 +41,7 @@ from mosaic.eval.datasets import (
     fire_truth,
     read_matrix,
 )
-from mosaic.features import FeatureExtractor
+from mosaic.features import FeatureExtractor, Features
 from mosaic.features import paper_metrics as gm
 from mosaic.io import atomic_path, make_folder, write_json
 from mosaic.matching import distance_matrix, match_descriptors
@@ -109,7 +109,7 @@ def _resize(image: np.ndarray, scale: float) -> np.ndarray:
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
-def fit_homography(xy_1: np.ndarray, xy_2: np.ndarray) -> np.ndarray | None:
+def least_squares_homography(xy_1: np.ndarray, xy_2: np.ndarray) -> np.ndarray | None:
     """Least-squares H_1_to_2 of control points (all of them, no RANSAC); None if < 4 points."""
     if len(xy_1) < gm.MIN_MATCHES:
         return None
@@ -168,6 +168,33 @@ def _registration_scores(
     return status, mee, mae, gm.rmse(errors_s), error_px, H_est
 
 
+def _detection_scores(
+    f1: Features,
+    f2: Features,
+    xy1_m: np.ndarray,
+    xy2_m: np.ndarray,
+    H: np.ndarray,
+    shape1: tuple[int, int],
+    shape2: tuple[int, int],
+) -> tuple[float, float, int, float, float]:
+    """The paper's scores of the keypoints and matches against the true `H` (image 1 into
+    image 2, detection pixels): repeatability, matching score, true matches, their coverage,
+    and the nearest-neighbour ratio AUC in the common region."""
+    rep = gm.repeatability(f1.xy, f2.xy, H, shape1, shape2, EPS_PX)
+    ms = gm.matching_score(f1.xy, f2.xy, xy1_m, xy2_m, H, shape1, shape2, EPS_PX)
+    tp = gm.true_positive_mask(xy1_m, xy2_m, H, EPS_PX)
+    cover = gm.coverage_fraction(xy1_m[tp], shape1)
+    auc = float("nan")
+    in1, in2 = gm.common_region(f1.xy, f2.xy, H, shape1, shape2)
+    if in1.any() and in2.any():
+        nearest, ratio = gm.nearest_neighbour_ratios(
+            distance_matrix(f1.descriptors[in1], f2.descriptors[in2])
+        )
+        correct = gm.true_positive_mask(f1.xy[in1], f2.xy[in2][nearest], H, EPS_PX)
+        auc = gm.nndr_auc(ratio, correct)
+    return rep, ms, int(tp.sum()), cover, auc
+
+
 def evaluate_pair(
     pair: Pair, config: Config, extractor: FeatureExtractor, scale: float = 1.0
 ) -> PairResult:
@@ -194,24 +221,13 @@ def evaluate_pair(
 
     H_gt_full = pair.H_1_to_2
     if H_gt_full is None and pair.control_points is not None:
-        H_gt_full = fit_homography(pair.control_points[:, :2], pair.control_points[:, 2:])
+        H_gt_full = least_squares_homography(pair.control_points[:, :2], pair.control_points[:, 2:])
 
     rep = ms = auc = cover = float("nan")
     n_tp = 0
     if H_gt_full is not None:
         H = S2 @ H_gt_full @ np.linalg.inv(S1)
-        rep = gm.repeatability(f1.xy, f2.xy, H, shape1, shape2, EPS_PX)
-        ms = gm.matching_score(f1.xy, f2.xy, xy1_m, xy2_m, H, shape1, shape2, EPS_PX)
-        tp = gm.true_positive_mask(xy1_m, xy2_m, H, EPS_PX)
-        n_tp = int(tp.sum())
-        cover = gm.coverage_fraction(xy1_m[tp], shape1)
-        in1, in2 = gm.common_region(f1.xy, f2.xy, H, shape1, shape2)
-        if in1.any() and in2.any():
-            nearest, ratio = gm.nearest_neighbour_ratios(
-                distance_matrix(f1.descriptors[in1], f2.descriptors[in2])
-            )
-            correct = gm.true_positive_mask(f1.xy[in1], f2.xy[in2][nearest], H, EPS_PX)
-            auc = gm.nndr_auc(ratio, correct)
+        rep, ms, n_tp, cover, auc = _detection_scores(f1, f2, xy1_m, xy2_m, H, shape1, shape2)
 
     scores = _registration_scores(pair, reg.H_moving_to_fixed, S1, S2, shape1)
     status, mee, mae, rms, error_px, H_full = scores if reg.ok else _FAILED_SCORES

@@ -51,7 +51,7 @@ from mosaic.pipeline import MosaicResult
 from mosaic.preprocess import field_of_view_mask, to_gray
 from mosaic.quality import spearman
 from mosaic.registration import MODELS as MOTION_MODELS
-from mosaic.report import FAILED, REGISTERED, SKIPPED
+from mosaic.report import FAILED, REGISTERED, SKIPPED, FrameEntry
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 from mosaic.runner import reread_frames as _reread
 from mosaic.synthetic.truth import gt_path_for, load_ground_truth
@@ -89,30 +89,30 @@ def find_videos(paths: Sequence[str | Path]) -> list[Path]:
 
 
 def _video_errors(
-    frames: list[dict[str, Any]], gt: list[np.ndarray], size: tuple[int, int]
+    frames: list[FrameEntry], gt: list[np.ndarray], size: tuple[int, int]
 ) -> dict[int, float]:
     """Corner error (px) of each registered frame of the first frame's segment, vs the truth."""
-    placed = [f for f in frames if f["status"] == REGISTERED and f["H_to_canvas"] is not None]
+    placed = [f for f in frames if f.status == REGISTERED and f.H_to_canvas is not None]
     if not placed:
         return {}
     ref = placed[0]
-    H_ref_to_canvas = np.asarray(ref["H_to_canvas"], np.float64)
-    if ref["index"] >= len(gt):
+    H_ref_to_canvas = np.asarray(ref.H_to_canvas, np.float64)
+    if ref.index >= len(gt):
         return {}
-    rel = relative_homographies(gt, ref=ref["index"])
+    rel = relative_homographies(gt, ref=ref.index)
     errors = {}
     for f in placed:
-        if f["segment"] != ref["segment"]:
+        if f.segment != ref.segment:
             continue
-        if f["index"] >= len(gt):
-            log.warning("frame %d has no ground truth (%d frames in it)", f["index"], len(gt))
+        if f.index >= len(gt):
+            log.warning("frame %d has no ground truth (%d frames in it)", f.index, len(gt))
             continue
-        H_i_to_ref = np.linalg.solve(H_ref_to_canvas, np.asarray(f["H_to_canvas"], np.float64))
-        errors[f["index"]] = corner_error(H_i_to_ref, rel[f["index"]], size)
+        H_i_to_ref = np.linalg.solve(H_ref_to_canvas, np.asarray(f.H_to_canvas, np.float64))
+        errors[f.index] = corner_error(H_i_to_ref, rel[f.index], size)
     return errors
 
 
-def _frame_references(frames: list[dict[str, Any]]) -> dict[int, int]:
+def _frame_references(frames: list[FrameEntry]) -> dict[int, int]:
     """{frame index: index of the frame it was registered against} for registered frames.
 
     The report's `"reference"` is used when it names a placed frame of the same segment. When it
@@ -120,25 +120,25 @@ def _frame_references(frames: list[dict[str, Any]]) -> dict[int, int]:
     segment's first, the previous registered frame of that segment stands in: exact for the
     chain strategy, an approximation for keyframes. A segment's first frame has no reference.
     """
-    placed = [f for f in frames if f["status"] == REGISTERED and f["H_to_canvas"] is not None]
-    segment_of = {f["index"]: f["segment"] for f in placed}
+    placed = [f for f in frames if f.status == REGISTERED and f.H_to_canvas is not None]
+    segment_of = {f.index: f.segment for f in placed}
     previous: dict[Any, int] = {}  # segment -> last registered frame index
     references = {}
     for f in placed:
-        ref = f.get("reference")
+        ref = f.reference
         if ref is None:
-            ref = previous.get(f["segment"])
-        elif segment_of.get(ref, object()) != f["segment"] or ref == f["index"]:
-            log.warning("frame %d: reference %s is not a registered frame", f["index"], ref)
+            ref = previous.get(f.segment)
+        elif segment_of.get(ref, object()) != f.segment or ref == f.index:
+            log.warning("frame %d: reference %s is not a registered frame", f.index, ref)
             ref = None
         if ref is not None:
-            references[f["index"]] = int(ref)
-        previous[f["segment"]] = f["index"]
+            references[f.index] = int(ref)
+        previous[f.segment] = f.index
     return references
 
 
 def _step_errors(
-    frames: list[dict[str, Any]], gt: list[np.ndarray], size: tuple[int, int]
+    frames: list[FrameEntry], gt: list[np.ndarray], size: tuple[int, int]
 ) -> dict[int, float]:
     """Corner error (px) of each registered frame's placement relative to its reference.
 
@@ -146,9 +146,9 @@ def _step_errors(
     H_frame_to_source), both in full-size frame pixels; references from `_frame_references`.
     """
     poses = {
-        f["index"]: np.asarray(f["H_to_canvas"], np.float64)
+        f.index: np.asarray(f.H_to_canvas, np.float64)
         for f in frames
-        if f["status"] == REGISTERED and f["H_to_canvas"] is not None
+        if f.status == REGISTERED and f.H_to_canvas is not None
     }
     errors = {}
     for index, ref in _frame_references(frames).items():
@@ -161,22 +161,8 @@ def _step_errors(
     return errors
 
 
-def _model_counts(frames: list[dict[str, Any]]) -> dict[str, int]:
-    """Registered frames per motion model (every model of MOTION_MODELS, 0 when unused).
-
-    Frames without a `"model"` (a segment's first frame, older reports) are not counted; a
-    model name outside MOTION_MODELS gets its own entry after them.
-    """
-    counts = dict.fromkeys(MOTION_MODELS, 0)
-    for f in frames:
-        model = f.get("model")
-        if f["status"] == REGISTERED and model is not None:
-            counts[model] = counts.get(model, 0) + 1
-    return counts
-
-
 def _quality_vs_error(
-    frames: list[dict[str, Any]], errors: dict[int, float] | None
+    frames: list[FrameEntry], errors: dict[int, float] | None
 ) -> dict[str, float]:
     """How the report's per-frame `quality` and `flagged` predict the corner error (`errors`).
 
@@ -190,11 +176,11 @@ def _quality_vs_error(
     nan = math.nan
     if errors is None:
         return {"quality_rho": nan, "bad_frames": nan, "bad_caught": nan, "good_flagged": nan}
-    entries = {f["index"]: f for f in frames}
+    entries = {f.index: f for f in frames}
     judged = sorted(errors)[1:]  # the first is the reference frame
     error = np.array([errors[i] for i in judged], np.float64)
-    score = np.array([entries[i].get("quality") for i in judged], np.float64)  # None -> nan
-    flagged = np.array([bool(entries[i].get("flagged")) for i in judged], bool)
+    score = np.array([entries[i].quality for i in judged], np.float64)  # None -> nan
+    flagged = np.array([entries[i].flagged for i in judged], bool)
     bad = error > ACCURATE_CORNER_ERROR_PX
     scored = bool(np.isfinite(score).any())
 
@@ -209,15 +195,15 @@ def _quality_vs_error(
     }
 
 
-def _leading_accurate(frames: list[dict[str, Any]], errors: dict[int, float] | None) -> int:
+def _leading_accurate(frames: list[FrameEntry], errors: dict[int, float] | None) -> int:
     """Registered (and accurate, when errors are given) frames from the start until a failure."""
     count = 0
     for f in frames:
-        if f["status"] == SKIPPED:
+        if f.status == SKIPPED:
             continue
-        if f["status"] == FAILED:
+        if f.status == FAILED:
             break
-        if errors is not None and not errors.get(f["index"], math.inf) <= ACCURATE_CORNER_ERROR_PX:
+        if errors is not None and not errors.get(f.index, math.inf) <= ACCURATE_CORNER_ERROR_PX:
             break
         count += 1
     return count
@@ -317,20 +303,18 @@ def _fidelity_scores(
     """The main mosaic's fidelity and good area (its frames' reported poses map into its
     image), and the video's oracle, as VideoResult fields."""
     start = time.perf_counter()
-    frames = result.report["frames"]
+    frames = result.report.frames
     main = result.main
     scores = FidelityScores()
     if main is not None:
         poses = {
-            f["index"]: np.asarray(f["H_to_canvas"], np.float64)
+            f.index: np.asarray(f.H_to_canvas, np.float64)
             for f in frames
-            if f["status"] == REGISTERED
-            and f["segment"] == main.index
-            and f["H_to_canvas"] is not None
+            if f.status == REGISTERED and f.segment == main.index and f.H_to_canvas is not None
         }
         image = main.image
         content = image.any(axis=2) if image.ndim == 3 else image > 0
-        scanned = [f["index"] for f in frames]
+        scanned = [f.index for f in frames]
         scores = mosaic_fidelity(
             image, content, poses, reference.truth, reference.source, size, scanned
         )
@@ -380,7 +364,7 @@ def evaluate_video(
     )
     result, info = run.result, run.info
     size = (info.width, info.height)
-    frames, summary = result.report["frames"], result.report["summary"]
+    frames, summary = result.report.frames, result.report.summary
     gt_file = gt_path_for(path)
     errors: dict[int, float] | None = None
     steps: dict[int, float] = {}
@@ -391,8 +375,8 @@ def evaluate_video(
     step_values = np.array(list(steps.values()))
     # every frame the video holds counts, those the gate skipped too (a frame skipped as
     # blurred is not placed: counting it out flattered gating); only undecodable ones do not
-    undecodable = sum(f.get("reason") == UNDECODABLE for f in frames)
-    decoded = max(summary["frames_read"] - undecodable, 1)
+    undecodable = sum(f.reason == UNDECODABLE for f in frames)
+    decoded = max(summary.frames_read - undecodable, 1)
     values = np.array(list(errors.values())) if errors else np.zeros(0)
     drift = math.nan
     if len(values) >= 2:
@@ -406,27 +390,27 @@ def evaluate_video(
         detector=f"{extractor.detector.name}/{config.pipeline.strategy}",
         video=str(path),
         has_ground_truth=errors is not None,
-        frames=summary["frames_read"],
-        registered=summary["registered"],
-        failed=summary["failed"],
-        skipped=summary["skipped"],
-        registered_fraction=summary["registered"] / decoded,
+        frames=summary.frames_read,
+        registered=summary.registered,
+        failed=summary.failed,
+        skipped=summary.skipped,
+        registered_fraction=summary.registered / decoded,
         frames_until_failure=_leading_accurate(frames, errors),
-        frames_until_failure_pipeline=summary["frames_until_failure"],
+        frames_until_failure_pipeline=summary.frames_until_failure,
         accurate_fraction=accurate / decoded if errors is not None else math.nan,
         mean_error_px=float(values.mean()) if values.size else math.nan,
         median_error_px=float(np.median(values)) if values.size else math.nan,
         max_error_px=float(values.max()) if values.size else math.nan,
         drift_px_per_frame=drift,
-        mean_inliers=float(summary["mean_inliers"]),
-        fps=float(summary["fps"]),
+        mean_inliers=float(summary.mean_inliers),
+        fps=float(summary.fps),
         step_median_px=float(np.median(step_values)) if step_values.size else math.nan,
         step_p90_px=float(np.percentile(step_values, 90)) if step_values.size else math.nan,
         **_quality_vs_error(frames, errors),
         **scores,
-        model_counts=_model_counts(frames),
-        segments=summary["segments"],
-        precision=summary.get("precision"),
+        model_counts={**dict.fromkeys(MOTION_MODELS, 0), **summary.models},
+        segments=summary.segments,
+        precision=summary.precision,
         errors=sorted(errors.items()) if errors else [],
         step_errors=sorted(steps.items()),
     )

@@ -186,7 +186,7 @@ def followup_hook(
     """The `edit_source` hook of `synth.write_synthetic_video` that renders a follow-up of the
     baseline whose ground truth is `baseline_gt`: changes planted where the baseline's frames
     and the follow-up's own frames (its trajectory, planned from the same source) both look."""
-    from mosaic.synthetic.synth import plan_trajectory
+    from mosaic.synthetic.trajectory import plan_trajectory
 
     H_base = np.array([f["H_frame_to_source"] for f in baseline_gt["frames"]], float)
     base_size = tuple(baseline_gt["size"])

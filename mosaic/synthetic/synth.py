@@ -52,24 +52,25 @@ from mosaic.io import (
     write_json,
 )
 from mosaic.preprocess import estimate_fov_disc
-from mosaic.preprocess import fov_distance as _fov_distance
+from mosaic.synthetic.streams import (
+    DUST,
+    HARD_NUISANCE,
+    NUISANCE,
+    REAL_NUISANCE,
+    REFLEX,
+    RIM,
+    smooth_signal,
+    stream,
+)
+from mosaic.synthetic.trajectory import plan_trajectory
 from mosaic.synthetic.truth import VIDEO_CODECS, gt_path_for
 
 log = logging.getLogger(__name__)
 
-_APERTURE_LEVEL = 2.0  # grey level of the dark border outside the simulated aperture
-_PSNR_MAX_FRAMES = 250  # frames kept in memory to measure the compression loss of a video file
-
-# Independent random streams (children of SeedSequence(seed)): switching one group of
-# nuisances on or off never changes what the others draw, nor the trajectory.
-_GEOMETRY, _NUISANCE, _HARD_GEOMETRY, _HARD_NUISANCE = 0, 1, 2, 3
-_REAL_GEOMETRY, _REAL_NUISANCE, _REFLEX, _DUST, _RIM = 4, 5, 6, 7, 8
 _SOURCE_ORDER_SEED = 13  # fixed shuffle of a source folder (`pick_source`)
 
-
-def _stream(seed: int, index: int) -> np.random.Generator:
-    """Random generator of stream `index` of a video's seed."""
-    return np.random.default_rng(np.random.SeedSequence(seed).spawn(index + 1)[index])
+_APERTURE_LEVEL = 2.0  # grey level of the dark border outside the simulated aperture
+_PSNR_MAX_FRAMES = 250  # frames kept in memory to measure the compression loss of a video file
 
 
 @dataclass(frozen=True)
@@ -228,173 +229,6 @@ class SynthParams:
 
 
 # --------------------------------------------------------------------------------------------
-# Source field of view and trajectory
-# --------------------------------------------------------------------------------------------
-
-
-def _smooth_signal(rng: np.random.Generator, t: np.ndarray, n_terms: int = 3) -> np.ndarray:
-    """Random sum of low-frequency sinusoids of t in [0, 1], rescaled to span exactly [-1, 1]."""
-    if t.size < 2:
-        return np.zeros_like(t)
-    freqs = rng.uniform(0.3, 1.6, n_terms) * np.arange(1, n_terms + 1)
-    amps = rng.uniform(0.5, 1.0, n_terms) / np.arange(1, n_terms + 1)
-    phases = rng.uniform(0, 2 * np.pi, n_terms)
-    sig = (amps * np.sin(2 * np.pi * t[:, None] * freqs + phases)).sum(axis=1)
-    lo, hi = sig.min(), sig.max()
-    return (2 * sig - (lo + hi)) / max(hi - lo, 1e-12)
-
-
-def _translation(tx: float, ty: float) -> np.ndarray:
-    return np.array([[1, 0, tx], [0, 1, ty], [0, 0, 1]], dtype=np.float64)
-
-
-def _centre_path(rng: np.random.Generator, steps: np.ndarray, radius: float) -> np.ndarray:
-    """Smooth curve inside a disc of `radius`, sampled at arc lengths cumsum(steps): (N, 2).
-
-    The curve is a random quasi-periodic sum of sinusoids normalised into the disc, then
-    re-parametrised by arc length so the per-frame displacement follows `steps` exactly.
-    """
-    targets = np.concatenate([[0.0], np.cumsum(steps)])
-    if radius <= 0 or targets[-1] <= 0:
-        return np.zeros((targets.size, 2))
-    n_terms = 3
-    freqs = rng.uniform(0.4, 1.2, (2, n_terms)) * np.arange(1, n_terms + 1)
-    amps = rng.uniform(0.5, 1.0, (2, n_terms)) / np.arange(1, n_terms + 1)
-    phases = rng.uniform(0, 2 * np.pi, (2, n_terms))
-    span = 1.0
-    for _ in range(60):
-        n_dense = int(4096 * span) + 1
-        t = np.linspace(0.0, span, n_dense)
-        waves = np.sin(2 * np.pi * t[None, :, None] * freqs[:, None, :] + phases[:, None, :])
-        xy = (amps[:, None, :] * waves).sum(axis=2).T  # (n_dense, 2)
-        xy -= xy.mean(axis=0)
-        xy *= radius / np.linalg.norm(xy, axis=1).max()
-        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
-        if arc[-1] >= targets[-1]:
-            break
-        span *= 1.5 * targets[-1] / max(arc[-1], 1e-9)
-    else:  # pragma: no cover - the curve length grows with its span
-        raise RuntimeError("could not build a long enough camera path")
-    return np.stack([np.interp(targets, arc, xy[:, 0]), np.interp(targets, arc, xy[:, 1])], 1)
-
-
-def _touch_rim(
-    path: np.ndarray, centre: np.ndarray, dist: np.ndarray, min_dist: np.ndarray
-) -> np.ndarray:
-    """Shift a path (N, 2) outwards until a frame centre comes `min_dist` (N,) from the view's
-    border: the largest shift, along the direction of the path's farthest point from `centre`,
-    that keeps every `centre + path[i]` at least `min_dist[i]` from it (`dist`: `_fov_distance`).
-    A shift keeps every step's length; the path must start feasible."""
-    norms = np.linalg.norm(path, axis=1)
-    far = int(np.argmax(norms))
-    u = path[far] / norms[far] if norms[far] > 1e-9 else np.array([1.0, 0.0])
-    shifts = np.arange(0.0, float(max(dist.shape)), 0.5)
-    xy = centre + path[None] + shifts[:, None, None] * u  # (shifts, N, 2)
-    ix = np.clip(np.rint(xy[..., 0]).astype(int) + 1, 0, dist.shape[1] - 1)
-    iy = np.clip(np.rint(xy[..., 1]).astype(int) + 1, 0, dist.shape[0] - 1)
-    feasible = (dist[iy, ix] >= min_dist).all(axis=1)
-    n_ok = shifts.size if feasible.all() else int(np.argmin(feasible))
-    return path + shifts[max(n_ok - 1, 0)] * u
-
-
-def plan_trajectory(source: np.ndarray, params: SynthParams) -> np.ndarray:
-    """Ground truth `H_frame_to_source` (N, 3, 3) of a smooth path inside the source's view.
-
-    H = T(centre) @ R(angle) @ S(scale) @ P(tilt) @ T(-frame centre). Every frame corner lies in
-    the inscribed disc of the source's field of view (minus a margin), so no frame shows the
-    source's black border. If the viewport is too large for the source, the whole video is
-    zoomed in uniformly (logged).
-
-    With `fov_fraction` the frame width spans that share of the view's diameter instead (drawn
-    per video). With `rim_overlap` > 0 the path is shifted towards the rim of the view until,
-    at one place, the view's black border comes within (1 - rim_overlap) frame half-heights of
-    the frame centre: those frames show part of the border, as magnified real video does.
-    """
-    n = params.n_frames
-    w, h = params.size
-    cx, cy, r_fov = estimate_fov_disc(source)
-    margin = max(4.0, 0.02 * r_fov)
-    rng = _stream(params.seed, _GEOMETRY)
-    t = np.linspace(0.0, 1.0, n)
-    angle = np.deg2rad(params.rotation_deg) / 2 * _smooth_signal(rng, t)
-    lo, hi = np.log(params.scale_range[0]), np.log(params.scale_range[1])
-    zoom = np.exp((lo + hi) / 2 + (hi - lo) / 2 * _smooth_signal(rng, t))
-    tilt = params.perspective * np.stack([_smooth_signal(rng, t), _smooth_signal(rng, t)], 1)
-    speed_signal = _smooth_signal(rng, t[:-1]) if n > 2 else np.zeros(max(n - 1, 0))
-    speed = 1.0 + params.speed_variation * speed_signal
-
-    # Frame-to-source map without the final translation: A = R S P T(-frame centre).
-    c, s = np.cos(angle), np.sin(angle)
-    A = np.zeros((n, 3, 3))
-    A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1] = c, -s, s, c
-    A[:, :2, :2] /= zoom[:, None, None]
-    A[:, 2, 2] = 1.0
-    P = np.tile(np.eye(3), (n, 1, 1))
-    P[:, 2, :2] = tilt
-    A = A @ P @ _translation(-(w - 1) / 2, -(h - 1) / 2)
-    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
-    mapped = corners @ A.transpose(0, 2, 1)
-    reach = float(np.linalg.norm(mapped[..., :2] / mapped[..., 2:], axis=-1).max())
-
-    base = 1.0  # source px per frame px at zoom 1; < 1 zooms in when the source is too small
-    usable = 0.65 * (r_fov - margin)  # at most this much of the radius for the viewport
-    if usable <= 1.0:
-        raise InputError(f"source image field of view too small (radius {r_fov:.0f} px)")
-    real_rng = _stream(params.seed, _REAL_GEOMETRY)
-    fraction = real_rng.uniform(*(params.fov_fraction or (1.0, 1.0)))
-    tremor = 1.0 + real_rng.uniform(-params.step_jitter, params.step_jitter, max(n - 1, 0))
-    if params.fov_fraction is not None:
-        base = fraction * 2 * r_fov / w
-        log.info("frame spans %.0f %% of the source's view (x%.2f)", 100 * fraction, 1 / base)
-    elif reach > usable:
-        base = usable / reach
-        log.info("viewport %dx%d too large for the source's view: zooming in x%.2f", w, h, 1 / base)
-    A[:, :2, :] *= base  # scales the mapped x, y (not w) of every point by `base`
-    reach *= base
-
-    # Centre motion in source px: frame-px speed times the frame's source-px-per-frame-px.
-    steps = params.max_step_px * speed / speed.mean() if n > 1 else np.zeros(0)
-    hard_rng = _stream(params.seed, _HARD_GEOMETRY)
-    if params.fast_motion_prob > 0 and n > 1:
-        starts = np.flatnonzero(hard_rng.random(n - 1) < params.fast_motion_prob)
-        for start in starts:
-            steps[start : start + int(hard_rng.integers(3, 6))] *= params.fast_motion_factor
-    if params.step_jitter > 0:
-        steps = steps * tremor
-    if params.step_range_px is not None:
-        steps = np.clip(steps, *params.step_range_px)
-    steps = steps * base / np.sqrt(zoom[:-1] * zoom[1:]) if n > 1 else steps
-    radius = r_fov - margin - reach * (1.0 - params.rim_overlap)  # then shifted to the rim
-    if radius <= 0:
-        raise InputError(
-            f"frame {w}x{h} too large for the source's view (radius {r_fov:.0f} px) "
-            f"at {1 / base:.2f}x magnification"
-        )
-    if params.revisit and n > 3:
-        # Out along the first half of the path, back along it shifted sideways by a third of
-        # the frame height: the way back overlaps the way out only partly.
-        half = (n + 1) // 2
-        out_path = _centre_path(rng, steps[: half - 1], radius)
-        direction = np.gradient(out_path, axis=0)
-        normal = np.stack([-direction[:, 1], direction[:, 0]], 1)
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
-        offset = normal * (h / 3) * base
-        back = (out_path + offset)[::-1][: n - half]
-        path = np.concatenate([out_path, back])
-        path *= min(1.0, radius / max(np.linalg.norm(path, axis=1).max(), 1e-9))
-    else:
-        path = _centre_path(rng, steps, radius)
-    if params.rim_overlap > 0:
-        half_height = (h - 1) / 2 * base / zoom  # in source px
-        min_dist = np.maximum((1.0 - params.rim_overlap) * half_height, 1.0)
-        path = _touch_rim(path, np.array([cx, cy]), _fov_distance(source), min_dist)
-    H = _translation(cx, cy)[None] @ np.tile(np.eye(3), (n, 1, 1))
-    H[:, :2, 2] += path
-    H = H @ A
-    return H / H[:, 2:3, 2:3]
-
-
-# --------------------------------------------------------------------------------------------
 # Rendering
 # --------------------------------------------------------------------------------------------
 
@@ -505,12 +339,12 @@ class _LensReflexes:
         k, n, (w, h) = params.lens_reflexes, params.n_frames, params.size
         if k <= 0:
             return None
-        rng = _stream(params.seed, _REFLEX)
+        rng = stream(params.seed, REFLEX)
         t = np.linspace(0.0, 1.0, n)
         home = rng.uniform(0.25, 0.75, (k, 2)) * [w, h]
         axes = rng.uniform(4.0, 16.0, (k, 2))
         peak = rng.uniform(100.0, 220.0, k)
-        wander = 6.0 * np.array([[_smooth_signal(rng, t) for _ in range(2)] for _ in range(k)])
+        wander = 6.0 * np.array([[smooth_signal(rng, t) for _ in range(2)] for _ in range(k)])
         flicker = 1.0 + rng.uniform(-0.15, 0.15, (n, k))
         return cls(home[None] + wander.transpose(2, 0, 1), axes, peak * flicker)
 
@@ -532,7 +366,7 @@ def _dust(params: SynthParams) -> np.ndarray | None:
     if params.dust_spots <= 0:
         return None
     (w, h), k = params.size, params.dust_spots
-    rng = _stream(params.seed, _DUST)
+    rng = stream(params.seed, DUST)
     centres = rng.uniform(0.15, 0.85, (k, 2)) * [w, h]
     sd, depth = rng.uniform(4.0, 14.0, k), rng.uniform(0.2, 0.6, k)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
@@ -560,9 +394,9 @@ class _LensRim:
         if not params.lens_rim:
             return None
         n, (w, h) = params.n_frames, params.size
-        rng = _stream(params.seed, _RIM)
+        rng = stream(params.seed, RIM)
         t = np.linspace(0.0, 1.0, n)
-        wander = np.stack([_smooth_signal(rng, t) * 0.15 * w, _smooth_signal(rng, t) * 0.15 * h], 1)
+        wander = np.stack([smooth_signal(rng, t) * 0.15 * w, smooth_signal(rng, t) * 0.15 * h], 1)
         centres = np.array([(w - 1) / 2, (h - 1) / 2]) + wander
         radius = float(rng.uniform(0.45, 0.6) * h)
         p = cls.PAD
@@ -571,7 +405,7 @@ class _LensRim:
         field = (field - field.min()) / max(float(np.ptp(field)), 1e-6)
         skin = np.array([0.55, 0.7, 1.0], np.float32)  # B, G, R: a lit face is reddish
         surround = (60.0 + 100.0 * field)[..., None] * skin
-        drift = np.stack([_smooth_signal(rng, t) * 0.5 * p, _smooth_signal(rng, t) * 0.5 * p], 1)
+        drift = np.stack([smooth_signal(rng, t) * 0.5 * p, smooth_signal(rng, t) * 0.5 * p], 1)
         return cls(centres, radius, surround, drift)
 
     def apply(self, img: np.ndarray, i: int) -> np.ndarray:
@@ -606,7 +440,7 @@ class _RealisticNuisances:
     @classmethod
     def draw(cls, params: SynthParams, H_all: np.ndarray) -> _RealisticNuisances:
         n, (w, h) = params.n_frames, params.size
-        rng = _stream(params.seed, _REAL_NUISANCE)
+        rng = stream(params.seed, REAL_NUISANCE)
         gain = 1.0 + rng.uniform(-params.gain_jitter, params.gain_jitter, n)
         gamma = 1.0 + rng.uniform(-params.gamma_jitter, params.gamma_jitter, n)
         noise = params.noise_sigma + rng.uniform(-params.noise_jitter, params.noise_jitter, n)
@@ -637,6 +471,54 @@ class _RealisticNuisances:
         return cls(gain, gamma, np.maximum(noise, 0.0), streak, defocus, glare)
 
 
+@dataclass(frozen=True)
+class _Illumination:
+    """The light a frame gets: a drifting gain, a colour tint and a vignette whose strength
+    and centre wander (smooth signals over the video)."""
+
+    gain: np.ndarray  # (n,)
+    tint: np.ndarray  # (n, 3)
+    vignette: np.ndarray  # (n,) darkening at the frame's corners
+    centre: np.ndarray  # (n, 2) the vignette's centre, px from the frame centre
+    xx: np.ndarray  # (h, w) float32 px from the frame centre
+    yy: np.ndarray
+    r2_scale: float  # 1 / the squared half-diagonal
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, t: np.ndarray, params: SynthParams) -> _Illumination:
+        w, h = params.size
+        gain = 1.0 + params.gain_drift * smooth_signal(rng, t)
+        tint = 1.0 + 0.04 * np.stack([smooth_signal(rng, t) for _ in range(3)], 1)
+        vignette = params.vignette + params.vignette_variation * smooth_signal(rng, t)
+        centre = np.stack([smooth_signal(rng, t) * 0.15 * w, smooth_signal(rng, t) * 0.15 * h], 1)
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        xx -= (w - 1) / 2
+        yy -= (h - 1) / 2
+        return cls(gain, tint, vignette, centre, xx, yy, 1.0 / ((w / 2) ** 2 + (h / 2) ** 2))
+
+    def factor(self, i: int, real_gain: float) -> np.ndarray:
+        """(h, w, 3) factor of frame i's light (`real_gain`: the realistic video's own gain)."""
+        r2 = (self.xx - self.centre[i, 0]) ** 2 + (self.yy - self.centre[i, 1]) ** 2
+        light = self.gain[i] * real_gain * (1.0 - self.vignette[i] * (r2 * self.r2_scale))
+        return light[..., None] * self.tint[i].astype(np.float32)
+
+
+def _optical_blur(
+    frame: np.ndarray, optics_px: float, streak: np.ndarray, defocus_px: float
+) -> np.ndarray:
+    """Optics, motion (a `streak` of (length, angle)) and defocus blur the scene before the
+    sensor (float32)."""
+    img = frame.astype(np.float32)
+    if optics_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), optics_px)
+    length, angle = streak
+    if length >= 1.0:
+        img = cv2.filter2D(img, -1, _line_kernel(length, angle))
+    if defocus_px >= 0.5:
+        img = cv2.filter2D(img, -1, _disc_kernel(defocus_px))
+    return img
+
+
 def render_frames(
     source: np.ndarray, params: SynthParams
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -644,26 +526,16 @@ def render_frames(
     source = to_bgr8(source)
     w, h = params.size
     H_all = plan_trajectory(source, params)
-    rng = _stream(params.seed, _NUISANCE)
+    rng = stream(params.seed, NUISANCE)
     t = np.linspace(0.0, 1.0, params.n_frames)
     aperture = _aperture_mask(w, h)[..., None] if params.aperture else None
-    hard_rng = _stream(params.seed, _HARD_NUISANCE)
+    hard_rng = stream(params.seed, HARD_NUISANCE)
     real = _RealisticNuisances.draw(params, H_all)
     reflexes = _LensReflexes.draw(params)
     dust = _dust(params)
     rim = _LensRim.draw(params)
     burst_left = 0
-    if params.nuisances:
-        gain = 1.0 + params.gain_drift * _smooth_signal(rng, t)
-        tint = 1.0 + 0.04 * np.stack([_smooth_signal(rng, t) for _ in range(3)], 1)
-        vignette = params.vignette + params.vignette_variation * _smooth_signal(rng, t)
-        vig_centre = np.stack(
-            [_smooth_signal(rng, t) * 0.15 * w, _smooth_signal(rng, t) * 0.15 * h], 1
-        )
-        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-        xx -= (w - 1) / 2
-        yy -= (h - 1) / 2
-        r2_scale = 1.0 / ((w / 2) ** 2 + (h / 2) ** 2)
+    light = _Illumination.draw(rng, t, params) if params.nuisances else None
 
     def view(H_frame_to_source: np.ndarray) -> np.ndarray:
         return cv2.warpPerspective(
@@ -676,16 +548,7 @@ def render_frames(
         )
 
     def blurred(frame: np.ndarray, i: int) -> np.ndarray:
-        """Optics, motion and defocus blur the scene before the sensor."""
-        img = frame.astype(np.float32)
-        if params.optics_blur_px > 0:
-            img = cv2.GaussianBlur(img, (0, 0), params.optics_blur_px)
-        length, angle = real.streak[i]
-        if length >= 1.0:
-            img = cv2.filter2D(img, -1, _line_kernel(length, angle))
-        if real.defocus_px[i] >= 0.5:
-            img = cv2.filter2D(img, -1, _disc_kernel(real.defocus_px[i]))
-        return img
+        return _optical_blur(frame, params.optics_blur_px, real.streak[i], real.defocus_px[i])
 
     for i, H_frame_to_source in enumerate(H_all):
         frame = view(H_frame_to_source)
@@ -700,10 +563,8 @@ def render_frames(
         img = blurred(frame, i) if params.nuisances else frame.astype(np.float32)
         if second is not None:  # the sensor reads the odd rows from the second field
             img[1::2] = (blurred(second, i) if params.nuisances else second)[1::2]
-        if params.nuisances:
-            r2 = ((xx - vig_centre[i, 0]) ** 2 + (yy - vig_centre[i, 1]) ** 2) * r2_scale
-            light = gain[i] * real.gain[i] * (1.0 - vignette[i] * r2)
-            img *= light[..., None] * tint[i].astype(np.float32)
+        if light is not None:
+            img *= light.factor(i, real.gain[i])
         if rim is not None:
             img = rim.apply(img, i)
         if dust is not None:
@@ -874,7 +735,6 @@ __all__ = [
     "estimate_fov_disc",
     "lens_rim_truth",
     "pick_source",
-    "plan_trajectory",
     "render_frames",
     "write_synthetic_video",
 ]

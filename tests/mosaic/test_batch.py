@@ -22,20 +22,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mosaic.batch import (
-    FAILED,
-    INTERRUPTED,
-    NOT_RUN,
-    OK,
-    VideoTask,
-    find_tasks,
-    read_manifest,
-    render_index,
-    row_of,
-    run_batch,
-    run_local,
-    safe_id,
-)
+from mosaic.batch import run_batch, run_local
+from mosaic.batch_summary import render_index
+from mosaic.batch_tasks import VideoTask, find_tasks, read_manifest, safe_id
+from mosaic.batch_video import FAILED, INTERRUPTED, NOT_RUN, OK, row_of
 from mosaic.config import load_config
 from mosaic.errors import InputError
 from mosaic.synthetic.synth import SynthParams, write_synthetic_video

@@ -292,10 +292,10 @@ tracking.KeyframeTracker.track = _broken
 """
 
 BROKEN_PAIR = """
-import mosaic.cli
+import mosaic.pair_files
 def _broken(*args, **kwargs):
     raise TypeError("injected bug\\nsecond line of its text")
-mosaic.cli.register_pair = _broken
+mosaic.pair_files.register_pair = _broken
 """
 
 

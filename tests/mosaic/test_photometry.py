@@ -8,13 +8,15 @@ import numpy as np
 import pytest
 
 from mosaic.blending import LaplacianBlender, fill_invalid
-from mosaic.compose import BLENDS, Canvas, LiveCompositor, render_segments
+from mosaic.canvas import BLENDS, Canvas
+from mosaic.compose import LiveCompositor
 from mosaic.config import ComposeConfig
 from mosaic.photometry import (
     GainObservations,
     SideBandDetector,
     VideoPhotometry,
 )
+from mosaic.render import render_segments
 
 H, W = 120, 160  # frame size of the synthetic videos
 

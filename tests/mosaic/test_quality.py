@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic.compose import Canvas
+from mosaic.canvas import Canvas
 from mosaic.config import ComposeConfig, Config, PreprocessConfig, with_overrides
 from mosaic.io import open_frames
 from mosaic.preprocess import prepare

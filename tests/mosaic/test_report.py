@@ -80,3 +80,23 @@ def test_what_is_not_a_report_reads_as_none(tmp_path) -> None:
     assert read_report(tmp_path / "other.json") is None
     (tmp_path / "broken.json").write_text("{")
     assert read_report(tmp_path / "broken.json") is None
+
+
+def test_model_counts_of_registered_frames():
+    """Registered frames per model, in MODELS order: a failed frame and a segment's first
+    frame (no reference) are not counted."""
+    from mosaic.pipeline import FrameRecord
+    from mosaic.report import _model_counts
+
+    records = [
+        FrameRecord(0, REGISTERED, segment=0),
+        FrameRecord(1, REGISTERED, segment=0, model="similarity", reference=0),
+        FrameRecord(2, REGISTERED, segment=0, model="homography", reference=1),
+        FrameRecord(3, REGISTERED, segment=0, model="similarity", reference=2),
+        FrameRecord(4, FAILED, reason="too few inliers", model="homography", reference=3),
+        FrameRecord(5, REGISTERED, segment=1, model="affine"),
+    ]
+    assert list(_model_counts(records).items()) == [
+        ("similarity", 2),
+        ("homography", 1),
+    ]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,7 +17,6 @@ from mosaic.config import Config, with_overrides
 from mosaic.eval.video_eval import (
     _frame_references,
     _leading_accurate,
-    _model_counts,
     _quality_vs_error,
     _step_errors,
     _unique_stems,
@@ -30,6 +30,7 @@ from mosaic.features import FeatureExtractor
 from mosaic.geometry import relative_homographies
 from mosaic.glampoints_cli import app as glampoints_app
 from mosaic.io import sample_image_path
+from mosaic.report import BuildReport, FrameEntry
 from mosaic.synthetic.synth import SynthParams, write_synthetic_video
 from mosaic.synthetic.truth import gt_path_for, load_ground_truth
 from tests.helpers import leaving_clip
@@ -37,12 +38,20 @@ from tests.helpers import leaving_clip
 runner = CliRunner()
 
 
+def _entry(**fields) -> FrameEntry:
+    """A report's frame entry with `fields` (index and status at least), the rest as read
+    from a report that leaves them out."""
+    unread = {"segment": 0, "H_to_canvas": None, "n_keypoints": 0, "n_matches": 0}
+    unread |= {"n_inliers": 0, "reproj_error_px": None, "time_ms": 0.0}
+    return FrameEntry.from_dict(unread | fields)
+
+
 def test_video_errors_and_frames_until_failure_by_hand():
     gt = [np.eye(3), np.array([[1, 0, 10.0], [0, 1, 0], [0, 0, 1]]), np.eye(3), np.eye(3)]
     rel = relative_homographies(gt)
     canvas = np.array([[1, 0, 50.0], [0, 1, 20.0], [0, 0, 1]])  # H_ref_to_canvas
     off = np.array([[1, 0, 0], [0, 1, 12.0], [0, 0, 1]])  # 12 px wrong in y
-    frames = [
+    entries = [
         {"index": 0, "status": "registered", "segment": 0, "H_to_canvas": canvas.tolist()},
         {
             "index": 1,
@@ -53,19 +62,20 @@ def test_video_errors_and_frames_until_failure_by_hand():
         {"index": 2, "status": "skipped", "segment": None, "H_to_canvas": None},
         {"index": 3, "status": "registered", "segment": 0, "H_to_canvas": (canvas @ off).tolist()},
     ]
+    frames = [_entry(**e) for e in entries]
     errors = _video_errors(frames, gt, (40, 30))
     assert errors == pytest.approx({0: 0.0, 1: 0.0, 3: 12.0})
     assert _leading_accurate(frames, errors) == 2  # frame 3 is off by more than 10 px
     assert _leading_accurate(frames, None) == 3  # without ground truth: registration only
-    frames[1]["status"] = "failed"
+    frames[1] = replace(frames[1], status="failed")
     assert _leading_accurate(frames, errors) == 1
 
 
 def _scored_frames(qualities, flagged):
     """Report entries 0..n: frame 0 the unscored reference, then the given scores and flags."""
-    frames = [{"index": 0, "status": "registered", "quality": None, "flagged": False}]
+    frames = [_entry(index=0, status="registered", quality=None, flagged=False)]
     for i, (q, f) in enumerate(zip(qualities, flagged, strict=True), start=1):
-        frames.append({"index": i, "status": "registered", "quality": q, "flagged": f})
+        frames.append(_entry(index=i, status="registered", quality=q, flagged=f))
     return frames
 
 
@@ -91,7 +101,7 @@ def test_quality_vs_error_by_hand():
 
 def test_quality_vs_error_without_scores_or_truth():
     errors = {0: 0.0, 1: 2.0, 2: 15.0, 3: 30.0}
-    older = [{"index": i, "status": "registered"} for i in range(4)]  # no "quality" keys
+    older = [_entry(index=i, status="registered") for i in range(4)]  # no "quality" keys
     check = _quality_vs_error(older, errors)
     assert check["bad_frames"] == 2
     assert all(math.isnan(check[k]) for k in ("quality_rho", "bad_caught", "good_flagged"))
@@ -135,7 +145,7 @@ def _step_fixture():
             f["reference"] = reference
         if model != "absent":
             f["model"] = model
-        return f
+        return _entry(**f)
 
     frames = [
         entry(0, 0, None, None),
@@ -149,7 +159,7 @@ def _step_fixture():
         entry(8, 1, None, None),  # a new segment: no reference
         entry(9, 1, "absent", "translation"),
     ]
-    np.testing.assert_allclose(frames[1]["H_to_canvas"], canvas[0] @ rel[1])
+    np.testing.assert_allclose(frames[1].H_to_canvas, canvas[0] @ rel[1])
     expected = {1: 0.0, 2: 8.0, 3: 8.0, 5: 8.0, 6: 0.0, 7: 0.0, 9: 0.0}
     return frames, gt, (64, 48), expected
 
@@ -165,25 +175,14 @@ def test_step_errors_against_each_frames_reference():
 
 def test_step_errors_of_older_reports_use_the_previous_frame():
     frames, gt, size, _ = _step_fixture()
-    for f in frames:
-        f.pop("reference", None)
-        f.pop("model", None)
+    frames = [replace(f, reference=None, model=None) for f in frames]
     assert _frame_references(frames) == {1: 0, 2: 1, 3: 2, 5: 3, 6: 5, 7: 6, 9: 8}
     steps = _step_errors(frames, gt, size)
     assert steps == pytest.approx({1: 0, 2: 8, 3: 8, 5: 0, 6: 0, 7: 0, 9: 0}, abs=1e-9)
-    assert _model_counts(frames) == {
-        "translation": 0,
-        "similarity": 0,
-        "affine": 0,
-        "homography": 0,
-    }
 
 
-def test_model_counts_of_registered_frames():
-    frames, _, _, _ = _step_fixture()
-    frames[4]["model"] = "homography"  # frame 4 failed: not counted
-    counts = _model_counts(frames)
-    assert counts == {"translation": 1, "similarity": 3, "affine": 1, "homography": 1}
+def test_format_models():
+    counts = {"translation": 1, "similarity": 3, "affine": 1, "homography": 1}
     assert format_models(counts) == "tra 1 / sim 3 / aff 1 / hom 1"
     assert format_models(dict.fromkeys(counts, 0)) is None
 
@@ -242,11 +241,12 @@ def test_video_evaluation_end_to_end(small_video, tmp_path):
     assert report["input"]["path"] == str(small_video) and report["input"]["width"] == 240
     assert report["summary"]["strategy"] == "keyframes" and len(report["frames"]) == 6
     gt = load_ground_truth(gt_path_for(small_video))
-    errors = _video_errors(report["frames"], gt, (240, 160))
+    frames = BuildReport.from_dict(report).frames
+    errors = _video_errors(frames, gt, (240, 160))
     assert [[i, pytest.approx(e, abs=1e-3)] for i, e in sorted(errors.items())] == with_truth[
         "errors"
     ]
-    check = _quality_vs_error(report["frames"], errors)
+    check = _quality_vs_error(frames, errors)
     assert check["good_flagged"] == 0.0 and check["bad_frames"] == 0
 
 

@@ -21,10 +21,10 @@ from mosaic.synthetic.synth import (
     _line_kernel,
     estimate_fov_disc,
     pick_source,
-    plan_trajectory,
     render_frames,
     write_synthetic_video,
 )
+from mosaic.synthetic.trajectory import plan_trajectory
 from mosaic.synthetic.truth import gt_path_for, load_ground_truth
 
 SIZE = (240, 160)
@@ -199,8 +199,6 @@ def test_errors(tmp_path):
 
 
 def test_hard_video_revisits_and_blurs(fundus):
-    from mosaic.synthetic.synth import plan_trajectory
-
     params = SynthParams.hard(n_frames=40, size=(200, 150), seed=4, max_step_px=25.0)
     H = plan_trajectory(fundus, params)
     mapped = H @ np.array([99.5, 74.5, 1.0])

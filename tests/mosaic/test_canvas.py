@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic.compose import PICTURE_THREADS, Canvas
+from mosaic.canvas import PICTURE_THREADS, Canvas
 from mosaic.config import ComposeConfig
 from mosaic.errors import CanvasLimitError
 from mosaic.preprocess import scale_matrix
@@ -288,7 +288,7 @@ def test_many_frames_growing_in_all_directions(
     offsets[0] = ref_xy
     canvas = Canvas(ComposeConfig(blend=blend))
     covered = np.zeros((bh, bw), bool)
-    with caplog.at_level(logging.DEBUG, logger="mosaic.compose"):
+    with caplog.at_level(logging.DEBUG, logger="mosaic.canvas"):
         for x, y in offsets:
             canvas.add(base[y : y + fh, x : x + fw], translation(x - ref_xy[0], y - ref_xy[1]))
             covered[y : y + fh, x : x + fw] = True
@@ -363,14 +363,14 @@ def test_weight_factors_and_float_frames(blend: str) -> None:
 
 
 def test_planes_hold_what_separate_canvases_hold():
-    """`_Planes` (the flat-field's shading mosaic) warps each frame's weights once for all its
+    """`CanvasPlanes` (the flat-field's shading mosaic) warps each frame's weights once for all its
     planes: sums, weights and reads are those of one `Canvas` per plane, bit for bit, across
     buffer growth."""
-    from mosaic.compose import _Planes
+    from mosaic.canvas import CanvasPlanes
 
     rng = np.random.default_rng(4)
     config = ComposeConfig(blend="average")
-    planes = _Planes(config, 2)
+    planes = CanvasPlanes(config, 2)
     separate = [Canvas(config, 3) for _ in range(2)]
     h, w = 40, 60
     for i in range(12):
@@ -457,10 +457,10 @@ def test_multiband_renders_strip_by_strip_exactly(monkeypatch) -> None:
     np.testing.assert_array_equal(blender.render(), whole)
     for y0, rows in [(0, 1), (3, 2), (31, 33), (64, 64), (100, 7), (blender.height - 5, 9)]:
         np.testing.assert_array_equal(blender.render_rows(y0, y0 + rows), whole[y0 : y0 + rows])
-    monkeypatch.setattr("mosaic.compose.RENDER_ROWS", 10**6)
+    monkeypatch.setattr("mosaic.canvas.RENDER_ROWS", 10**6)
     reference = canvas.render()
     for rows in (1, 7, 64):
-        monkeypatch.setattr("mosaic.compose.RENDER_ROWS", rows)
+        monkeypatch.setattr("mosaic.canvas.RENDER_ROWS", rows)
         np.testing.assert_array_equal(canvas.render(), reference)
 
 
@@ -468,10 +468,10 @@ def test_multiband_over_its_memory_budget_feathers_with_a_warning(monkeypatch, c
     from mosaic.blending import LaplacianBlender
 
     need = LaplacianBlender.bytes_for(310, 450, 3)
-    monkeypatch.setattr("mosaic.compose.MULTIBAND_MAX_BYTES", need)
+    monkeypatch.setattr("mosaic.canvas.MULTIBAND_MAX_BYTES", need)
     assert _random_canvas()._blender is not None
-    monkeypatch.setattr("mosaic.compose.MULTIBAND_MAX_BYTES", need - 1)
-    with caplog.at_level(logging.WARNING, logger="mosaic.compose"):
+    monkeypatch.setattr("mosaic.canvas.MULTIBAND_MAX_BYTES", need - 1)
+    with caplog.at_level(logging.WARNING, logger="mosaic.canvas"):
         canvas = _random_canvas()
     assert canvas._blender is None and canvas.blend == "feather"
     assert "feathering instead of multiband" in caplog.text
@@ -582,45 +582,3 @@ def test_shrink_noise_reads_the_noise_where_the_mosaic_is_quiet():
 
     assert rms(out, textured) <= rms(noisy, textured)
     assert rms(out, quiet) < 0.5 * rms(noisy, quiet)
-
-
-def test_read_ahead_reads_before_it_is_called_and_gives_the_frames_in_order():
-    """`ReadAhead` reads in its thread from the moment it is made, holds at most about
-    `keep_bytes` of frames (one more frame while it waits), gives them in order to its first
-    call, reads afresh for a later one, and raises the reader's error where the frame failed."""
-    import threading
-    import time
-
-    from mosaic.compose import ReadAhead
-
-    read: list[int] = []
-    more = threading.Event()
-
-    def frames():
-        for index in range(10):
-            if index == 3:
-                more.wait(5.0)
-            read.append(index)
-            yield index, np.full((4, 5, 3), index, np.uint8), np.full((4, 5), 255, np.uint8)
-
-    ahead = ReadAhead(frames, keep_bytes=2 * 80)  # two frames (60 + 20 bytes each)
-    deadline = time.monotonic() + 5.0
-    while len(read) < 3 and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert read == [0, 1, 2]  # read before the call; the third waits for room
-    more.set()
-    got = [(i, int(image[0, 0, 0])) for i, image, _ in ahead()]
-    assert got == [(i, i) for i in range(10)]
-    assert [i for i, _, _ in ahead()] == list(range(10))  # afresh: all read again
-    ahead.close()
-
-    def broken():
-        yield 0, np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2), np.uint8)
-        raise ValueError("cannot decode frame 1")
-
-    failing = ReadAhead(broken)
-    taken = failing()
-    assert next(taken)[0] == 0
-    with pytest.raises(ValueError, match="frame 1"):
-        next(taken)
-    failing.close()
