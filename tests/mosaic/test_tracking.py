@@ -259,8 +259,8 @@ def test_keyframe_is_promoted_before_registration_fails_on_a_slow_pan(fundus):
     size = (320, 240)
 
     def run(**keyframes):
-        result = _run(_config("keyframes", **keyframes), frames)
-        return result.report, errors_to_first(result.report.to_dict()["frames"], truth, size)
+        report = _run(_config("keyframes", **keyframes), frames).report.to_dict()
+        return report, errors_to_first(report["frames"], truth, size)
 
     report, errors = run()
     tracking = report["summary"]["tracking"]
