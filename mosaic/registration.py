@@ -460,20 +460,9 @@ def estimate_motion(
     evidence = float("nan")
     if inliers.sum() >= 4:
         a, b, w = a_all[inliers], b_all[inliers], w_all[inliers]
-        dof = max(2 * len(a) - N_PARAMS[chosen], 1)
-        inflation = _inflation(a, T)
-        if config.perspective_prior > 0 and chosen != "homography":
-            if relax is not True:
-                evidence = perspective_evidence(fit, a, b, w)
-            if callable(relax):  # the pure model's H in pixels for the caller to judge
-                pure = np.linalg.inv(T) @ fit.M @ T
-                relax = relax(evidence, pure / pure[2, 2], chosen)
-            if relax:
-                sigma2 = max(fit.rss / dof, 1e-12) * inflation
-                fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
+        fit, evidence, sd = _relaxed(fit, a, b, w, T, corners, config, relax)
         if model != "auto":  # the fit's expected corner error (auto's also counts the bias)
-            sigma2 = max(fit.rss / dof, 1e-12) * inflation
-            corner_sd = float(np.sqrt(np.mean(sigma2 * fit.predict(corners)[1])))
+            corner_sd = sd
     return _checked(
         np.linalg.inv(T) @ fit.M @ T,
         inliers,
@@ -485,6 +474,37 @@ def estimate_motion(
         corner_sd_px=corner_sd / T[0, 0] if np.isfinite(corner_sd) else float("nan"),
         perspective_evidence=evidence,
     )
+
+
+def _relaxed(
+    fit: _Fit,
+    a: np.ndarray,
+    b: np.ndarray,
+    w: np.ndarray,
+    T: np.ndarray,
+    corners: np.ndarray,
+    config: RegistrationConfig,
+    relax: bool | Callable[[float, np.ndarray, str], bool],
+) -> tuple[_Fit, float, float]:
+    """The refined fit relaxed by the perspective prior where `relax` says so (see
+    `estimate_motion`), its perspective evidence (nan when not asked for) and its expected
+    corner error in normalised units, from the inliers `a` -> `b` with weights `w`."""
+    chosen = fit.model
+    evidence = float("nan")
+    dof = max(2 * len(a) - N_PARAMS[chosen], 1)
+    inflation = _inflation(a, T)
+    if config.perspective_prior > 0 and chosen != "homography":
+        if relax is not True:
+            evidence = perspective_evidence(fit, a, b, w)
+        if callable(relax):  # the pure model's H in pixels for the caller to judge
+            pure = np.linalg.inv(T) @ fit.M @ T
+            relax = relax(evidence, pure / pure[2, 2], chosen)
+        if relax:
+            sigma2 = max(fit.rss / dof, 1e-12) * inflation
+            fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
+    sigma2 = max(fit.rss / dof, 1e-12) * inflation
+    corner_sd = float(np.sqrt(np.mean(sigma2 * fit.predict(corners)[1])))
+    return fit, evidence, corner_sd
 
 
 def inlier_coverage(xy: np.ndarray, shape: tuple[int, int]) -> float:
