@@ -1,6 +1,6 @@
 """Points and transforms, written once: homographies and quadratics applied to points, a
 frame's corners, translations, pixel-centre rescaling, the frame-centred normalisation that fits are
-conditioned in, Huber weights for re-weighted fits, and the corner error that scores an
+conditioned in, Huber weights and the loop of re-weighted fits, and the corner error that scores an
 estimate against the truth.
 
 Conventions: points are (N, 2) arrays of (x, y); a transform named `H_a_to_b` maps pixels of a
@@ -13,7 +13,12 @@ synthetic data share these helpers, so they live here (the runtime stages import
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TypeVar
+
 import numpy as np
+
+Fit = TypeVar("Fit")
 
 
 def apply_homography(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -93,6 +98,41 @@ def normalised(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
 def huber_weights(residuals: np.ndarray, k: float) -> np.ndarray:
     """Re-weighted least squares' weights of Huber's loss: 1 within `k`, k / |r| beyond."""
     return np.where(residuals <= k, 1.0, k / np.maximum(residuals, 1e-12))
+
+
+def reweighted_rounds(
+    fit: Callable[[int, Fit | None, np.ndarray, np.ndarray], Fit | None],
+    errors: Callable[[Fit], np.ndarray],
+    inliers: np.ndarray,
+    weights: np.ndarray,
+    *,
+    rounds: int,
+    threshold: float,
+    huber_k: float,
+    min_points: int,
+    prior_weights: np.ndarray | None = None,
+) -> tuple[Fit | None, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Iteratively re-weighted least squares, the one loop of the robust fits: each of
+    `rounds` rounds fits the model to the inliers with their weights (`fit(round, previous,
+    inliers, weights)`; None: the fit failed, and so does the whole), then takes as inliers the
+    points within `threshold` of it, weighted by Huber at `huber_k` (times `prior_weights`).
+    Stops early where fewer than `min_points` are inliers. Returns the last fit (None when
+    there was none), its inliers, weights and errors (None before a first fit)."""
+    state: Fit | None = None
+    err: np.ndarray | None = None
+    for round_ in range(rounds):
+        if inliers.sum() < min_points:
+            break
+        new = fit(round_, state, inliers, weights)
+        if new is None:
+            return None, inliers, weights, err
+        state = new
+        err = errors(state)
+        inliers = err < threshold
+        weights = huber_weights(err, huber_k)
+        if prior_weights is not None:
+            weights = prior_weights * weights
+    return state, inliers, weights, err
 
 
 def relative_homographies(gt: list[np.ndarray] | np.ndarray, ref: int = 0) -> list[np.ndarray]:

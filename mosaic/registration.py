@@ -39,6 +39,7 @@ from mosaic.geometry import (
     huber_weights,
     normalised,
     quadratic_terms,
+    reweighted_rounds,
 )
 
 METHODS = {
@@ -430,28 +431,28 @@ def estimate_motion(
     T = frame_normaliser(shape)
     a_all, b_all = normalised(T, xy_cur), normalised(T, xy_prev)
     corners = normalised(T, frame_corners(shape))
-    M = T @ consensus.H_moving_to_fixed @ np.linalg.inv(T)
-    threshold = config.reproj_threshold_px * T[0, 0]
-    huber = HUBER_PX * T[0, 0]
-    inliers = consensus.inliers
-    w_all = np.ones(n)
-    fit: _Fit | None = None
+    M0 = T @ consensus.H_moving_to_fixed @ np.linalg.inv(T)
     corner_sd = float("nan")
+
+    def fit_round(round_: int, previous: _Fit | None, inl: np.ndarray, w: np.ndarray):
+        nonlocal corner_sd
+        a, b, M = a_all[inl], b_all[inl], previous.M if previous else M0
+        if model == "auto" and round_ < 2:  # select on the consensus, then on its refinement
+            fit, corner_sd = select_model(a, b, w[inl], M, corners, _inflation(a, T))
+            return fit
+        return _fit(previous.model if previous else model, a, b, w[inl], M)
+
     try:
-        for round_ in range(REFINE_ROUNDS):
-            a, b, w = a_all[inliers], b_all[inliers], w_all[inliers]
-            if len(a) < 4:
-                break
-            if model == "auto" and round_ < 2:  # select on the consensus, then on its refinement
-                fit, corner_sd = select_model(a, b, w, M, corners, _inflation(a, T))
-            else:
-                fit = _fit(fit.model if fit else model, a, b, w, M)
-                if fit is None:
-                    break
-            M = fit.M
-            err = transfer_errors(M, a_all, b_all)
-            inliers = err < threshold
-            w_all = huber_weights(err, huber)
+        fit, inliers, w_all, _ = reweighted_rounds(
+            fit_round,
+            lambda fit: transfer_errors(fit.M, a_all, b_all),
+            consensus.inliers,
+            np.ones(n),
+            rounds=REFINE_ROUNDS,
+            threshold=config.reproj_threshold_px * T[0, 0],
+            huber_k=HUBER_PX * T[0, 0],
+            min_points=4,
+        )
     except np.linalg.LinAlgError:
         fit = None
     if fit is None:
@@ -579,17 +580,22 @@ def robust_fit(
     M = M / M[2, 2]
 
     def rounds(predict, fit, thr):
-        err = np.linalg.norm(predict(a_all) - b_all, axis=1)
-        state, inl = None, err < thr
-        for _ in range(ROBUST_ROUNDS):
-            inl = err < thr
-            if inl.sum() < ROBUST_MIN_POINTS:
-                break
-            w = w0 * huber_weights(err, thr / ROBUST_HUBER_DIVISOR)
-            state, _ = fit(a_all[inl], b_all[inl], w[inl])
-            err = np.linalg.norm(predict(a_all, state) - b_all, axis=1)
-        inl = err < thr
-        return state, inl, err
+        def errors(state=None):
+            return np.linalg.norm(predict(a_all, state) - b_all, axis=1)
+
+        err0 = errors()
+        state, inl, _, err = reweighted_rounds(
+            lambda _round, _previous, inl, w: fit(a_all[inl], b_all[inl], w[inl])[0],
+            errors,
+            err0 < thr,
+            w0 * huber_weights(err0, thr / ROBUST_HUBER_DIVISOR),
+            rounds=ROBUST_ROUNDS,
+            threshold=thr,
+            huber_k=thr / ROBUST_HUBER_DIVISOR,
+            min_points=ROBUST_MIN_POINTS,
+            prior_weights=w0,
+        )
+        return state, inl, err0 if err is None else err
 
     def h_predict(q, state=None):
         return apply_homography(M if state is None else state.M, q)
