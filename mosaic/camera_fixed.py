@@ -1,7 +1,8 @@
 """Structures fixed to the camera, masked so that no keypoint on them pulls frames together:
 burned-in overlays (a fixation cross, text, a timestamp: pixels that never change,
-`OverlayMask`) and lens reflexes (bright spots that stay in one place of the frame while the
-retina moves, `ReflexMask`)."""
+`OverlayMask`), lens reflexes (bright spots that stay in one place of the frame while the
+retina moves, `ReflexMask`) and the camera's dark surround when haze or glare lifts it
+(`SurroundMask`)."""
 
 from __future__ import annotations
 
@@ -148,6 +149,74 @@ def _grown(shapes: np.ndarray, r: int) -> np.ndarray:
     out = np.zeros(shapes.shape, np.uint8)
     out[y0:y1, x0:x1] = cv2.dilate(shapes[y0:y1, x0:x1].view(np.uint8), disc)
     return out
+
+
+class SurroundMask:
+    """Remembers the camera's dark surround (outside its aperture) and keeps it out of frames
+    whose haze or glare lifts it.
+
+    Haze (scattered light) or glare can lift the surround above `fov_threshold`: the frame's
+    view mask then covers it, and the only structure left on a faint frame is the aperture's
+    edge, fixed to the camera, which registrations lock onto (zero motion, 20-50 inliers).
+    The surround is the pixels outside the view mask in at least `SHARE` of the frames so far
+    (from `MIN_FRAMES` frames on) and in the last frame counted, so a dark border that moves
+    with the retina is let go as soon as a frame shows it inside. A frame in which more than
+    `LIFTED` of the surround, at least `MIN_AREA` of the frame, shows as inside is lifted: the
+    surround is taken out of its mask and the frame is not counted. Other frames are left as
+    they are. After `MAX_LIFTED` lifted frames in a row the view has changed for good and the
+    history starts again. Frames must come in order; a frame of another size starts afresh."""
+
+    MIN_FRAMES = 5
+    SHARE = 0.9
+    LIFTED = 0.5
+    MIN_AREA = 0.02
+    MAX_LIFTED = 50
+
+    def __init__(self, config: PreprocessConfig):
+        self._enabled = config.surround_mask and config.fov_mask
+        self._dark: np.ndarray | None = None  # (H, W) uint32: frames each pixel was outside
+        self._n = 0  # frames counted
+        self._lifted_run = 0
+        self._surround: np.ndarray | None = None  # bool (H, W), None when there is none
+        self.lifted: np.ndarray | None = None  # the surround taken out of the last frame
+
+    def __call__(self, prepared: Prepared) -> Prepared:
+        """Count the frame, or, when its surround is lifted, take the surround out of it."""
+        self.lifted = None
+        if not self._enabled:
+            return prepared
+        outside = prepared.mask == 0
+        if self._dark is None or self._dark.shape != outside.shape:
+            self._dark = np.zeros(outside.shape, np.uint32)
+            self._n, self._lifted_run, self._surround = 0, 0, None
+        if self._is_lifted(outside):
+            self._lifted_run += 1
+            if self._lifted_run <= self.MAX_LIFTED:
+                self.lifted = self._surround
+                return Prepared(prepared.gray, surround_removed(prepared.mask, self.lifted))
+            self._dark[:] = 0  # not a lifted surround: a new view
+            self._n = 0
+        self._lifted_run = 0
+        self._dark += outside
+        self._n += 1
+        self._surround = None
+        if self._n >= self.MIN_FRAMES:
+            surround = (self._dark >= self.SHARE * self._n) & outside
+            if np.count_nonzero(surround) >= self.MIN_AREA * surround.size:
+                self._surround = surround
+        return prepared  # its own mask holds the surround already
+
+    def _is_lifted(self, outside: np.ndarray) -> bool:
+        surround = self._surround
+        if surround is None:
+            return False
+        lifted = np.count_nonzero(surround & ~outside)
+        return lifted > self.LIFTED * np.count_nonzero(surround)
+
+
+def surround_removed(mask: np.ndarray, surround: np.ndarray) -> np.ndarray:
+    """A view mask without the camera's surround (`SurroundMask.lifted`)."""
+    return np.where(surround, np.uint8(0), mask)
 
 
 class ReflexMask:

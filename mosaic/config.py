@@ -39,6 +39,7 @@ class PreprocessConfig:
     overlay_mask: bool = True  # no keypoints on burned-in overlays (pixels that never change)
     overlay_max_range: int = 2  # grey levels a pixel may vary over the video and count as static
     overlay_margin_px: int = 6  # margin kept away from a static overlay
+    surround_mask: bool = True  # the camera's dark surround kept out where haze lifts it
     reflex_mask: bool = True  # no keypoints on lens reflexes: bright spots that stay in one
     # place of the frame while the retina moves (their edges would match where the camera was)
     reflex_brightness: int = 50  # grey levels above its surroundings a reflex keeps in every

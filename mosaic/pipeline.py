@@ -27,7 +27,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mosaic.camera_fixed import OverlayMask, ReflexMask, Spots
+from mosaic.camera_fixed import (
+    OverlayMask,
+    ReflexMask,
+    Spots,
+    SurroundMask,
+    surround_removed,
+)
 from mosaic.canvas import Canvas
 from mosaic.compose import LiveCompositor
 from mosaic.config import Config
@@ -175,6 +181,8 @@ class MosaicBuilder:
         self.segments = Segments(config, self._size.to_frame)
         self._gate = FrameGate(config.gating)
         self._overlay = OverlayMask(config.preprocess)
+        self._surround = SurroundMask(config.preprocess)
+        self._lifted: dict[int, np.ndarray] = {}  # frame index -> its lifted surround
         self._reflexes = ReflexMask(config.preprocess)
         self._reflex_spots: dict[int, Spots] = {}  # frame index -> its reflexes
         self._rim = LensRimMask(config.preprocess)
@@ -239,6 +247,9 @@ class MosaicBuilder:
         gate = self._gate(prepared)  # before overlay masking: sharpness of the whole view
         record.blurred = gate.blurred
         prepared = timer.run("preprocess", self._overlay, work, prepared)
+        prepared = timer.run("preprocess", self._surround, prepared)
+        if self._surround.lifted is not None:  # kept for the re-render: left out there too
+            self._lifted[index] = self._surround.lifted
         prepared = timer.run("preprocess", self._rim, work, prepared)
         if self._rim.found is not None:  # kept for the re-render: left out there too
             self._rims[index] = (self._rim.found, self._rim.margin_px)
@@ -407,6 +418,9 @@ class MosaicBuilder:
                 # the overlay estimate of the whole video: no overlay pixels from any frame
                 work, _ = self._size.resize(image)
                 prepared = self._overlay.apply(prepare(work, mask_config))
+                if index in self._lifted:
+                    mask = surround_removed(prepared.mask, self._lifted[index])
+                    prepared = Prepared(prepared.gray, mask)
                 if index in self._rims:
                     mask = outside_rim_removed(prepared.mask, *self._rims[index])
                     prepared = Prepared(prepared.gray, mask)

@@ -3,10 +3,11 @@ import numpy as np
 import pytest
 
 from glampoints.synthetic import frame_preprocess
-from mosaic.camera_fixed import OverlayMask, ReflexMask
+from mosaic.camera_fixed import OverlayMask, ReflexMask, SurroundMask
 from mosaic.config import PreprocessConfig
 from mosaic.preprocess import (
     Deinterlacer,
+    Prepared,
     erode_by_disc,
     field_of_view_mask,
     field_offset,
@@ -378,3 +379,64 @@ def test_reflex_mask_removes_a_bright_spot_fixed_in_the_frame_not_one_on_the_ret
     np.testing.assert_array_equal(reflexes.found.removed_from(prepared.mask), masked.mask)
     off = ReflexMask(PreprocessConfig(overlay_mask=False, reflex_mask=False))
     assert (off(bgr, prepared).mask == prepared.mask).all()
+
+
+def _aperture_frame(rng, surround=2, contrast=1.0, band_px=0, h=120, w=200):
+    """A textured retina inside a dark elliptical aperture fixed to the camera (`surround`:
+    the grey outside it: dark, or lifted by haze); `band_px`: the retina's own black border
+    (moving with it) covering the frame's left columns."""
+    retina = 150 + contrast * rng.normal(0, 20, (h, w))
+    frame = np.full((h, w), float(surround))
+    yy, xx = np.mgrid[:h, :w]
+    inside = ((xx - w / 2) / (0.45 * w)) ** 2 + ((yy - h / 2) / (0.45 * h)) ** 2 < 1
+    frame[inside] = retina[inside]
+    frame[:, :band_px] = np.where(inside[:, :band_px], 2.0, frame[:, :band_px])
+    return Prepared(np.clip(frame, 0, 255).astype(np.uint8), _mask_of(frame))
+
+
+def _mask_of(frame):
+    return field_of_view_mask(np.clip(frame, 0, 255).astype(np.uint8), threshold=12, erode_px=6)
+
+
+def test_a_surround_lifted_by_haze_is_taken_out_and_a_dark_border_moving_with_the_retina_is_not():
+    rng = np.random.default_rng(0)
+    surround = SurroundMask(PreprocessConfig())
+    clear = [_aperture_frame(rng) for _ in range(8)]
+    for frame in clear:  # the camera's surround learned; clear frames left as they are
+        np.testing.assert_array_equal(surround(frame).mask, frame.mask)
+        assert surround.lifted is None
+    always_outside = np.all([frame.mask == 0 for frame in clear], axis=0)
+    assert always_outside.mean() > 0.25  # the aperture's surround
+    for _ in range(5):  # haze lifts the surround to grey: the frame's own mask covers it all
+        hazy = _aperture_frame(rng, surround=110, contrast=0.3)
+        assert hazy.mask.min() == 255
+        mask = surround(hazy).mask
+        assert mask[always_outside].max() == 0  # the surround out
+        assert mask[clear[-1].mask > 0].min() == 255  # the last clear frame's view in
+        assert surround.lifted is not None
+    clear_again = _aperture_frame(rng)
+    np.testing.assert_array_equal(surround(clear_again).mask, clear_again.mask)
+    # a camera that starts on the retina's black border and leaves it: no frame is changed
+    moving = SurroundMask(PreprocessConfig())
+    for band in [60] * 6 + [50, 30, 10, 0, 0]:
+        frame = _aperture_frame(rng, band_px=band)
+        np.testing.assert_array_equal(moving(frame).mask, frame.mask)
+        assert moving.lifted is None
+
+
+def test_a_surround_lifted_for_good_is_a_new_view():
+    rng = np.random.default_rng(1)
+    surround = SurroundMask(PreprocessConfig())
+    for _ in range(SurroundMask.MIN_FRAMES):
+        surround(_aperture_frame(rng))
+    for _ in range(SurroundMask.MAX_LIFTED):
+        surround(_aperture_frame(rng, surround=110))
+        assert surround.lifted is not None
+    new_view = _aperture_frame(rng, surround=110)  # one more: the history starts again
+    np.testing.assert_array_equal(surround(new_view).mask, new_view.mask)
+    assert surround.lifted is None
+    off = SurroundMask(PreprocessConfig(surround_mask=False))
+    for _ in range(SurroundMask.MIN_FRAMES):
+        off(_aperture_frame(rng))
+    hazy = _aperture_frame(rng, surround=110)
+    np.testing.assert_array_equal(off(hazy).mask, hazy.mask)
