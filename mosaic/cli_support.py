@@ -175,6 +175,8 @@ def summary_text(report: BuildReport, output: Path, report_path: Path) -> str:
         rows.insert(4, ("lens reflexes masked", f"{summary.reflex_frames} frames"))
     if summary.lens_rim_frames:  # a handheld lens: what lay outside its rim left out
         rows.insert(4, ("lens rim masked", f"{summary.lens_rim_frames} frames"))
+    if summary.surround_lifted_frames:  # haze lifted the camera's surround: left out
+        rows.insert(4, ("hazy surround masked", f"{summary.surround_lifted_frames} frames"))
     width = max(len(name) for name, _ in rows)
     lines = [f"{name:<{width}}  {_cell(value)}" for name, value in rows]
     lines.append(f"mosaic: {output}")

@@ -94,6 +94,8 @@ class FrameRecord:
     reflexes: bool = False  # lens reflexes left out of it (`[preprocess] reflex_mask`)
     lens_rim: Circle | None = None  # (cx, cy, r) px of a handheld lens's rim, outside which
     # nothing of it was used (`[preprocess] lens_rim_mask`)
+    surround_lifted: bool = False  # the camera's surround, lifted by haze, left out of it
+    # (`[preprocess] surround_mask`)
     blurred: str | None = None  # too blurred to blend (the gate's reason): registered all the
     # same where it can be, and left out of the mosaic (`[gating] blurred = "track"`)
     by_flow: bool = False  # placed by optical flow from its predecessor (`[registration]
@@ -250,6 +252,7 @@ class MosaicBuilder:
         prepared = timer.run("preprocess", self._surround, prepared)
         if self._surround.lifted is not None:  # kept for the re-render: left out there too
             self._lifted[index] = self._surround.lifted
+            record.surround_lifted = True
         prepared = timer.run("preprocess", self._rim, work, prepared)
         if self._rim.found is not None:  # kept for the re-render: left out there too
             self._rims[index] = (self._rim.found, self._rim.margin_px)

@@ -64,6 +64,7 @@ class FrameEntry:
     deinterlaced: bool
     reflexes: bool
     lens_rim: list[float] | None  # [cx, cy, r] frame px
+    surround_lifted: bool  # the camera's dark surround, lifted by haze, left out of it
     blurred: bool
     blended: bool
     by_flow: bool
@@ -96,6 +97,7 @@ class FrameEntry:
             deinterlaced=data.get("deinterlaced", False),
             reflexes=data.get("reflexes", False),
             lens_rim=data.get("lens_rim"),
+            surround_lifted=data.get("surround_lifted", False),
             blurred=data.get("blurred", False),
             blended=data.get("blended", data["status"] == REGISTERED),
             by_flow=data.get("by_flow", False),
@@ -170,6 +172,7 @@ class Summary:
     deinterlaced: int
     reflex_frames: int
     lens_rim_frames: int
+    surround_lifted_frames: int
     blurred_registered: int
     field_offset_px: float | None
     looks_interlaced: bool
@@ -206,7 +209,7 @@ class Summary:
     def from_dict(cls, data: dict[str, Any]) -> Summary:
         later = {  # keys older reports lack, and what they read as
             "quality_flagged": 0, "deinterlaced": 0, "reflex_frames": 0, "lens_rim_frames": 0,
-            "blurred_registered": 0, "looks_interlaced": False,
+            "surround_lifted_frames": 0, "blurred_registered": 0, "looks_interlaced": False,
         }  # fmt: skip
         values = {}
         for f in dataclasses.fields(cls):
@@ -469,6 +472,7 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> Fram
         deinterlaced=record.deinterlaced,
         reflexes=record.reflexes,
         lens_rim=None if record.lens_rim is None else [round(v, 1) for v in record.lens_rim],
+        surround_lifted=record.surround_lifted,
         blurred=record.blurred is not None,
         blended=record.status == REGISTERED and record.blurred is None,
         by_flow=record.by_flow,
@@ -534,6 +538,7 @@ def build_report(
         deinterlaced=sum(r.deinterlaced for r in records),
         reflex_frames=sum(r.reflexes for r in records),
         lens_rim_frames=sum(r.lens_rim is not None for r in records),
+        surround_lifted_frames=sum(r.surround_lifted for r in records),
         blurred_registered=sum(r.blurred is not None for r in records if r.status == REGISTERED),
         field_offset_px=None
         if inputs.field_offset_px is None

@@ -819,3 +819,19 @@ def test_the_report_says_which_precision_the_network_ran_in(tmp_path):
         config = with_overrides(Config(), features={"detector": detector, "precision": precision})
         summary = _run(folder, config).report.to_dict()["summary"]
         assert summary["precision"] == expected and summary["registered"] == 3, summary
+
+
+def test_hazy_frames_lose_the_lifted_surround_and_stay_on_the_truth(tmp_path):
+    """Haze lifts the dark aperture's surround into the last frames' view masks: it is left
+    out of those frames alone (`[preprocess] surround_mask`), which the report says, and the
+    frames are placed by the retina."""
+    folder = tmp_path / "hazy"
+    params = SynthParams(n_frames=16, size=SIZE, seed=3, haze_frames=5)
+    gt = load_ground_truth(write_synthetic_video(SAMPLE_IMAGE, folder, params))
+    report = _run(folder, _config()).report.to_dict()
+    lifted = [f["index"] for f in report["frames"] if f["surround_lifted"]]
+    assert lifted == list(range(11, 16))
+    assert report["summary"]["surround_lifted_frames"] == 5
+    placed = [f for f in report["frames"] if f["status"] == "registered"]
+    assert len(placed) >= 14
+    assert max(errors_to_first(placed, gt, SIZE)) < 10.0
