@@ -384,6 +384,13 @@ DustSpots = Annotated[
         "frame (20-60 % of the light taken at their centre).",
     ),
 ]
+Fast = Annotated[
+    bool,
+    typer.Option(
+        help="With --realistic: faster and more magnified, 4-45 px of motion a frame and "
+        "20-40 % of the source's view per frame."
+    ),
+]
 LensRim = Annotated[
     bool,
     typer.Option(
@@ -444,6 +451,7 @@ def synth(
         bool, typer.Option(help="Hard like real video: loops, fast motion, blur bursts, glare.")
     ] = False,
     realistic: Realistic = False,
+    fast: Fast = False,
     interlaced: Interlaced = False,
     lens_reflexes: LensReflexes = 0,
     dust_spots: DustSpots = 0,
@@ -468,6 +476,7 @@ def synth(
                 clean=clean,
                 hard=hard,
                 realistic=realistic,
+                fast=fast,
                 interlaced=interlaced,
                 lens_reflexes=lens_reflexes,
                 dust_spots=dust_spots,

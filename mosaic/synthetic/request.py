@@ -40,6 +40,7 @@ class SynthRequest:
     clean: bool
     hard: bool
     realistic: bool
+    fast: bool  # with realistic: faster and more magnified (`SynthParams.realistic_fast`)
     interlaced: bool
     lens_reflexes: int
     dust_spots: int
@@ -64,6 +65,8 @@ def check_request(request: SynthRequest) -> None:
     """Options that cannot go together: one line naming them (`InputError`)."""
     if request.hard and request.realistic:
         raise InputError("choose one of --hard and --realistic")
+    if request.fast and not request.realistic:
+        raise InputError("--fast: with --realistic (faster, more magnified realistic video)")
     video_only = {"--interlaced": request.interlaced, "--lens-reflexes": request.lens_reflexes,
                   "--dust-spots": request.dust_spots, "--lens-rim": request.lens_rim,
                   "--haze-frames": request.haze_frames}  # fmt: skip
@@ -82,6 +85,8 @@ def synthesize(request: SynthRequest) -> Synthesized:
     make = SynthParams  # the profile: its defaults, or hard or realistic ones
     if request.hard or request.realistic:
         make = SynthParams.hard if request.hard else SynthParams.realistic
+    if request.realistic and request.fast:
+        make = SynthParams.realistic_fast
     params = make(
         n_frames=request.frames,
         size=parse_size(request.size or VIDEO_SIZE),

@@ -297,6 +297,21 @@ def test_realistic_motion_magnification_rotation_zoom(source, seed):
     assert 3.0 < np.ptp(angles) < 6.5  # a few degrees
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_realistic_fast_moves_faster_over_a_more_magnified_view(source, seed):
+    size = (330, 176)
+    params = SynthParams.realistic_fast(n_frames=80, size=size, seed=seed)
+    steps = _centre_motion_px(plan_trajectory(source, params), size)
+    # the path's steps are clipped to 4-45 px; the centre also moves with the slow rotation
+    # and zoom about the view (a few hundredths of a px a frame at this size)
+    assert steps.min() >= 4.0 - 0.1 and steps.max() <= 45.0 + 0.1, (steps.min(), steps.max())
+    assert steps.max() > 25.0  # beyond the realistic profile's 25 px
+    _, _, r = estimate_fov_disc(source)
+    source_px_per_frame_px, _ = _centre_scale_angle(plan_trajectory(source, params), size)
+    share = size[0] * source_px_per_frame_px / (2 * r)
+    assert share.min() > 0.2 * 0.94 and share.max() < 0.4 * 1.06
+
+
 def test_realistic_path_reaches_the_rim_of_the_view(source):
     """Some frames (not all) show the source's black border inside the frame's central disc."""
     size = (330, 176)
@@ -438,6 +453,8 @@ def test_source_folder_choice_is_deterministic(tmp_path):
         pick_source(empty, 0)
     result = CliRunner().invoke(app, ["synth", "--hard", "--realistic", "-o", str(out)])
     assert result.exit_code == 2 and "one of --hard and --realistic" in result.output
+    result = CliRunner().invoke(app, ["synth", "--fast", "-o", str(out)])
+    assert result.exit_code == 2 and "--fast: with --realistic" in result.output
 
 
 def test_interlaced_frames_take_their_odd_rows_half_a_frame_later():
