@@ -79,7 +79,7 @@ class OverlayMask:
             self._static_at = self._n
         if self._static is None:
             return prepared
-        return Prepared(prepared.gray, np.where(self._static, np.uint8(0), prepared.mask))
+        return Prepared(prepared.gray, cleared(prepared.mask, self._static))
 
     def _find_static(self, fov: np.ndarray) -> np.ndarray | None:
         """Overlay pixels inside the view `fov` (with their margin), or None when there is none
@@ -178,6 +178,7 @@ class SurroundMask:
         self._n = 0  # frames counted
         self._lifted_run = 0
         self._surround: np.ndarray | None = None  # bool (H, W), None when there is none
+        self._area = 0  # its pixels
         self.lifted: np.ndarray | None = None  # the surround taken out of the last frame
 
     def __call__(self, prepared: Prepared) -> Prepared:
@@ -193,7 +194,7 @@ class SurroundMask:
             self._lifted_run += 1
             if self._lifted_run <= self.MAX_LIFTED:
                 self.lifted = self._surround
-                return Prepared(prepared.gray, surround_removed(prepared.mask, self.lifted))
+                return Prepared(prepared.gray, cleared(prepared.mask, self.lifted))
             self._dark[:] = 0  # not a lifted surround: a new view
             self._n = 0
         self._lifted_run = 0
@@ -202,7 +203,8 @@ class SurroundMask:
         self._surround = None
         if self._n >= self.MIN_FRAMES:
             surround = (self._dark >= self.SHARE * self._n) & outside
-            if np.count_nonzero(surround) >= self.MIN_AREA * surround.size:
+            self._area = np.count_nonzero(surround)
+            if self._area >= self.MIN_AREA * surround.size:
                 self._surround = surround
         return prepared  # its own mask holds the surround already
 
@@ -210,13 +212,12 @@ class SurroundMask:
         surround = self._surround
         if surround is None:
             return False
-        lifted = np.count_nonzero(surround & ~outside)
-        return lifted > self.LIFTED * np.count_nonzero(surround)
+        return np.count_nonzero(surround & ~outside) > self.LIFTED * self._area
 
 
-def surround_removed(mask: np.ndarray, surround: np.ndarray) -> np.ndarray:
-    """A view mask without the camera's surround (`SurroundMask.lifted`)."""
-    return np.where(surround, np.uint8(0), mask)
+def cleared(mask: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """A uint8 view mask set to 0 where `where` (bool) holds: what is fixed to the camera out."""
+    return np.where(where, np.uint8(0), mask)
 
 
 class ReflexMask:
@@ -307,7 +308,7 @@ class ReflexMask:
         # the same as the last frame's (common: a reflex holds still): one object for both, so
         # a long video keeps one copy per change, not per frame
         self.found = self._kept = self._kept if found == self._kept else found
-        return Prepared(prepared.gray, np.where(reflex > 0, np.uint8(0), prepared.mask))
+        return Prepared(prepared.gray, cleared(prepared.mask, reflex > 0))
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ from mosaic.camera_fixed import (
     ReflexMask,
     Spots,
     SurroundMask,
-    surround_removed,
+    cleared,
 )
 from mosaic.canvas import Canvas
 from mosaic.compose import LiveCompositor
@@ -422,7 +422,7 @@ class MosaicBuilder:
                 work, _ = self._size.resize(image)
                 prepared = self._overlay.apply(prepare(work, mask_config))
                 if index in self._lifted:
-                    mask = surround_removed(prepared.mask, self._lifted[index])
+                    mask = cleared(prepared.mask, self._lifted[index])
                     prepared = Prepared(prepared.gray, mask)
                 if index in self._rims:
                     mask = outside_rim_removed(prepared.mask, *self._rims[index])

@@ -461,9 +461,9 @@ def estimate_motion(
     evidence = float("nan")
     if inliers.sum() >= 4:
         a, b, w = a_all[inliers], b_all[inliers], w_all[inliers]
-        fit, evidence, sd = _relaxed(fit, a, b, w, T, corners, config, relax)
+        fit, evidence, sigma2 = _relaxed(fit, a, b, w, T, config, relax)
         if model != "auto":  # the fit's expected corner error (auto's also counts the bias)
-            corner_sd = sd
+            corner_sd = float(np.sqrt(np.mean(sigma2 * fit.predict(corners)[1])))
     return _checked(
         np.linalg.inv(T) @ fit.M @ T,
         inliers,
@@ -483,13 +483,12 @@ def _relaxed(
     b: np.ndarray,
     w: np.ndarray,
     T: np.ndarray,
-    corners: np.ndarray,
     config: RegistrationConfig,
     relax: bool | Callable[[float, np.ndarray, str], bool],
 ) -> tuple[_Fit, float, float]:
     """The refined fit relaxed by the perspective prior where `relax` says so (see
-    `estimate_motion`), its perspective evidence (nan when not asked for) and its expected
-    corner error in normalised units, from the inliers `a` -> `b` with weights `w`."""
+    `estimate_motion`), its perspective evidence (nan when not asked for) and the variance of
+    its residuals inflated for clustered points, from the inliers `a` -> `b` with weights `w`."""
     chosen = fit.model
     evidence = float("nan")
     dof = max(2 * len(a) - N_PARAMS[chosen], 1)
@@ -503,9 +502,7 @@ def _relaxed(
         if relax:
             sigma2 = max(fit.rss / dof, 1e-12) * inflation
             fit = _fit_with_prior(fit, a, b, w, sigma2, config.perspective_prior) or fit
-    sigma2 = max(fit.rss / dof, 1e-12) * inflation
-    corner_sd = float(np.sqrt(np.mean(sigma2 * fit.predict(corners)[1])))
-    return fit, evidence, corner_sd
+    return fit, evidence, max(fit.rss / dof, 1e-12) * inflation
 
 
 def inlier_coverage(xy: np.ndarray, shape: tuple[int, int]) -> float:
