@@ -153,6 +153,24 @@ def corner_error(H_est_i_to_0: np.ndarray, H_gt_i_to_0: np.ndarray, size: tuple[
     return float(np.linalg.norm(xy[0] - xy[1], axis=1).mean())
 
 
+def view_error(
+    H_est_i_to_0: np.ndarray, H_gt_i_to_0: np.ndarray, size: tuple[int, int]
+) -> tuple[float, float, float]:
+    """How an estimate misplaces a frame, at the frame's centre: the shift (px), the zoom
+    (log of the area scale's square root) and the roll (radians) of H_gt^-1 H_est, which takes
+    the frame to itself (the identity when the estimate is right). Drift on a long path is
+    mostly zoom and roll (a 1 % zoom error moves a corner of a 660x350 frame by 3.7 px)."""
+    w, h = size
+    A = np.linalg.solve(np.asarray(H_gt_i_to_0, float), np.asarray(H_est_i_to_0, float))
+    centre = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
+    p = A @ centre
+    xy = p[:2] / p[2]
+    J = (A[:2, :2] - np.outer(xy, A[2, :2])) / p[2]  # the map's derivative at the centre
+    zoom = 0.5 * float(np.log(abs(np.linalg.det(J))))
+    roll = float(np.arctan2(J[1, 0] - J[0, 1], J[0, 0] + J[1, 1]))
+    return float(np.linalg.norm(xy - centre[:2])), zoom, roll
+
+
 __all__ = [
     "apply_homography",
     "apply_quadratic",
@@ -166,4 +184,5 @@ __all__ = [
     "rescaled",
     "scale_matrix",
     "translation",
+    "view_error",
 ]

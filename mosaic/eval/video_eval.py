@@ -20,7 +20,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,7 +45,7 @@ from mosaic.eval.video_tables import (
     write_video_outputs,
 )
 from mosaic.features import FeatureExtractor
-from mosaic.geometry import corner_error, relative_homographies
+from mosaic.geometry import corner_error, relative_homographies, view_error
 from mosaic.io import UNDECODABLE, make_folder, read_image
 from mosaic.pipeline import MosaicResult
 from mosaic.preprocess import field_of_view_mask, to_gray
@@ -88,19 +88,17 @@ def find_videos(paths: Sequence[str | Path]) -> list[Path]:
     return found
 
 
-def _video_errors(
-    frames: list[FrameEntry], gt: list[np.ndarray], size: tuple[int, int]
-) -> dict[int, float]:
-    """Corner error (px) of each registered frame of the first frame's segment, vs the truth."""
+def _placed_against_truth(
+    frames: list[FrameEntry], gt: list[np.ndarray]
+) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """(index, estimated H_frame_to_first, true H_frame_to_first) of each registered frame of
+    the first placed frame's segment."""
     placed = [f for f in frames if f.status == REGISTERED and f.H_to_canvas is not None]
-    if not placed:
-        return {}
+    if not placed or placed[0].index >= len(gt):
+        return
     ref = placed[0]
     H_ref_to_canvas = np.asarray(ref.H_to_canvas, np.float64)
-    if ref.index >= len(gt):
-        return {}
     rel = relative_homographies(gt, ref=ref.index)
-    errors = {}
     for f in placed:
         if f.segment != ref.segment:
             continue
@@ -108,8 +106,31 @@ def _video_errors(
             log.warning("frame %d has no ground truth (%d frames in it)", f.index, len(gt))
             continue
         H_i_to_ref = np.linalg.solve(H_ref_to_canvas, np.asarray(f.H_to_canvas, np.float64))
-        errors[f.index] = corner_error(H_i_to_ref, rel[f.index], size)
-    return errors
+        yield f.index, H_i_to_ref, rel[f.index]
+
+
+def _video_errors(
+    frames: list[FrameEntry], gt: list[np.ndarray], size: tuple[int, int]
+) -> dict[int, float]:
+    """Corner error (px) of each registered frame of the first frame's segment, vs the truth."""
+    return {i: corner_error(H, H_gt, size) for i, H, H_gt in _placed_against_truth(frames, gt)}
+
+
+def _view_errors(
+    frames: list[FrameEntry], gt: list[np.ndarray], size: tuple[int, int]
+) -> dict[str, float]:
+    """The corner error taken apart, means over the frames `_video_errors` scores: the shift
+    at the frame centre (px), the zoom (%) and the roll (degrees) of each frame's error
+    (`geometry.view_error`); nan without frames."""
+    placed = _placed_against_truth(frames, gt)
+    parts = np.array([view_error(H, H_gt, size) for _, H, H_gt in placed])
+    if not len(parts):
+        return {}
+    return {
+        "shift_error_px": float(parts[:, 0].mean()),
+        "zoom_error_pct": float(100 * np.abs(np.expm1(parts[:, 1])).mean()),
+        "roll_error_deg": float(np.degrees(np.abs(parts[:, 2])).mean()),
+    }
 
 
 def _frame_references(frames: list[FrameEntry]) -> dict[int, int]:
@@ -368,9 +389,11 @@ def evaluate_video(
     gt_file = gt_path_for(path)
     errors: dict[int, float] | None = None
     steps: dict[int, float] = {}
+    parts: dict[str, float] = {}
     if gt_file.is_file() and size is not None:
         gt = load_ground_truth(gt_file)
         errors = _video_errors(frames, gt, size)
+        parts = _view_errors(frames, gt, size)
         steps = _step_errors(frames, gt, size)
     step_values = np.array(list(steps.values()))
     # every frame the video holds counts, those the gate skipped too (a frame skipped as
@@ -402,6 +425,7 @@ def evaluate_video(
         median_error_px=float(np.median(values)) if values.size else math.nan,
         max_error_px=float(values.max()) if values.size else math.nan,
         drift_px_per_frame=drift,
+        **parts,
         mean_inliers=float(summary.mean_inliers),
         fps=float(summary.fps),
         step_median_px=float(np.median(step_values)) if step_values.size else math.nan,

@@ -48,6 +48,11 @@ class VideoResult:
     drift_px_per_frame: float  # slope of the corner error against the frame index
     mean_inliers: float
     fps: float
+    # the corner error taken apart (`geometry.view_error`), means over the same frames: the
+    # shift at the frame centre, the zoom and the roll of each frame against the truth
+    shift_error_px: float = math.nan
+    zoom_error_pct: float = math.nan
+    roll_error_deg: float = math.nan
     step_median_px: float = math.nan  # corner error of each frame relative to its reference
     step_p90_px: float = math.nan
     quality_rho: float = math.nan  # Spearman of quality and corner error (negative: it works)
@@ -76,6 +81,9 @@ VIDEO_MEAN_KEYS = (
     "mean_error_px",
     "max_error_px",
     "drift_px_per_frame",
+    "shift_error_px",
+    "zoom_error_pct",
+    "roll_error_deg",
     "step_median_px",
     "step_p90_px",
     "quality_rho",
@@ -101,6 +109,9 @@ VIDEO_COLUMNS = (
     ("mean_error_px", "error px", ".2f"),
     ("max_error_px", "max px", ".2f"),
     ("drift_px_per_frame", "drift px/fr", ".3f"),
+    ("shift_error_px", "centre px", ".2f"),
+    ("zoom_error_pct", "zoom %", ".2f"),
+    ("roll_error_deg", "roll deg", ".2f"),
     ("step_median_px", "step med px", ".2f"),
     ("step_p90_px", "step p90 px", ".2f"),
     ("quality_rho", "quality rho", ".2f"),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mosaic.geometry import corner_error, relative_homographies, reweighted_rounds
+from mosaic.geometry import corner_error, relative_homographies, reweighted_rounds, view_error
 
 
 def test_corner_error_and_relative_homographies():
@@ -15,6 +15,22 @@ def test_corner_error_and_relative_homographies():
     rel = relative_homographies(G)
     np.testing.assert_allclose(rel[0], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(rel[1], T, atol=1e-12)
+
+
+def test_view_error_takes_a_misplacement_apart_at_the_frame_centre():
+    """A frame misplaced by a zoom, a roll about its centre and then a shift, under a tilted
+    (perspective) truth: the three come back as they were made."""
+    w, h = 660, 350
+    c = np.array([[1, 0, (w - 1) / 2], [0, 1, (h - 1) / 2], [0, 0, 1.0]])
+    zoom, roll, shift = 1.02, np.deg2rad(0.7), np.array([3.0, -4.0])
+    S = np.diag([zoom, zoom, 1.0])
+    S[:2, :2] = zoom * np.array([[np.cos(roll), -np.sin(roll)], [np.sin(roll), np.cos(roll)]])
+    S[:2, 2] = shift
+    error = c @ S @ np.linalg.inv(c)  # in frame pixels: about the centre, then shifted
+    H_gt = np.array([[0.9, 0.05, 120.0], [-0.04, 1.1, -30.0], [2e-5, -3e-5, 1.0]])
+    got = view_error(H_gt @ error, H_gt, (w, h))
+    assert got == pytest.approx((5.0, np.log(zoom), roll), abs=1e-9)
+    assert view_error(H_gt, H_gt, (w, h)) == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
 
 
 def _shift_data(seed: int):

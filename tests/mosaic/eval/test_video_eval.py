@@ -21,6 +21,7 @@ from mosaic.eval.video_eval import (
     _step_errors,
     _unique_stems,
     _video_errors,
+    _view_errors,
     evaluate_video,
 )
 from mosaic.eval.video_tables import (
@@ -171,6 +172,11 @@ def test_step_errors_against_each_frames_reference():
     # Frame -> first frame: only frame 2 is off; frames registered to it were placed right.
     errors = _video_errors(frames, gt, size)
     assert errors == pytest.approx({0: 0, 1: 0, 2: 8, 3: 0, 5: 0, 6: 0, 7: 0}, abs=1e-9)
+    # taken apart: frame 2's 8 px are a shift (the same at the centre), no zoom, no roll
+    parts = _view_errors(frames, gt, size)
+    assert parts == pytest.approx(
+        {"shift_error_px": 8 / 7, "zoom_error_pct": 0.0, "roll_error_deg": 0.0}, abs=1e-9
+    )
 
 
 def test_step_errors_of_older_reports_use_the_previous_frame():
@@ -215,6 +221,10 @@ def test_video_evaluation_end_to_end(small_video, tmp_path):
     assert with_truth["registered_fraction"] == 1.0 and with_truth["accurate_fraction"] == 1.0
     assert with_truth["mean_error_px"] < 2.0
     assert abs(with_truth["drift_px_per_frame"]) < 1.0
+    # the corner error taken apart: the mean of the corners' errors is at least their mean,
+    # the centre's; a clean video's frames are well under 1 % of zoom and 0.5 degree of roll
+    assert with_truth["shift_error_px"] <= with_truth["mean_error_px"] + 1e-9
+    assert with_truth["zoom_error_pct"] < 1.0 and with_truth["roll_error_deg"] < 0.5
     assert [i for i, _ in with_truth["errors"]] == list(range(6))
     assert [i for i, _ in with_truth["step_errors"]] == list(range(1, 6))  # frame 0: no reference
     assert 0.0 <= with_truth["step_median_px"] <= with_truth["step_p90_px"] < 2.0
