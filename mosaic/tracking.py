@@ -38,6 +38,11 @@ from mosaic.registration import Registration, estimate_motion, perspective_neede
 log = logging.getLogger(__name__)
 
 Timed = Callable[..., Any]  # timer.run(stage, fn, *args)
+# tracked points a registration is refitted on (fewer: it keeps its keypoints). Below the 20
+# keypoint inliers a registration needs: on noisy magnified video tracking keeps fewer than
+# 20 in a quarter of the registrations, and 10 tracked points place a link better than 20-40
+# keypoints (fast45's links: zoom and roll 1.43 -> 1.29 % rms a link)
+TRACK_MIN_POINTS = 10
 TRACK_MAX_POINTS = 100  # inliers re-localised per registration (more add cost, not precision)
 FLOW_MAX_POINTS = 300  # the predecessor's keypoints followed by flow where matching failed
 FLOW_MIN_AGREEMENT = 0.4  # NCC of the two band-passed frames at the flow's placement: at the
@@ -195,10 +200,10 @@ def _tracked(
 ) -> Registration:
     """The registration refitted on its inliers re-localised by tracking
     (`pixel_refine.track_points`); it keeps its matches and inlier counts (what keyframe
-    promotion reads). Unchanged where too few points track or the refit fails. The refit is
-    relaxed by the perspective prior only where the video's views need it
-    (`PerspectiveEvidence`): on tracked points, which are placed twice as precisely, the
-    relaxation would otherwise fit their errors."""
+    promotion reads). Unchanged where fewer than TRACK_MIN_POINTS (or `min_inliers`) points
+    track or the refit fails. The refit is relaxed by the perspective prior only where the
+    video's views need it (`PerspectiveEvidence`): on tracked points, which are placed twice
+    as precisely, the relaxation would otherwise fit their errors."""
     assert registration.points is not None and registration.H_moving_to_fixed is not None
     xy_cur = registration.points[0]
     if len(xy_cur) > TRACK_MAX_POINTS:  # evenly through the list: spread over the frame
@@ -207,7 +212,7 @@ def _tracked(
     found, ok = track_points(
         features.texture, reference.texture, xy_cur, pred, config.registration.track_window_px
     )
-    if ok.sum() < config.registration.min_inliers:
+    if ok.sum() < min(TRACK_MIN_POINTS, config.registration.min_inliers):
         return registration
     h, w = shape
     centre = np.array([[w / 2, h / 2]])
@@ -221,7 +226,10 @@ def _tracked(
         relaxed = perspective.needed(evidence, fitted)
         return relaxed
 
-    refit = estimate_motion(xy_cur[ok], found[ok], config.registration, shape, model, relax)
+    refit_config = dataclasses.replace(
+        config.registration, min_inliers=min(TRACK_MIN_POINTS, config.registration.min_inliers)
+    )
+    refit = estimate_motion(xy_cur[ok], found[ok], refit_config, shape, model, relax)
     if not refit.ok:
         return registration
     perspective.relaxed += relaxed
