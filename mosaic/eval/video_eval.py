@@ -109,11 +109,18 @@ def _placed_against_truth(
         yield f.index, H_i_to_ref, rel[f.index]
 
 
+Placed = list[tuple[int, np.ndarray, np.ndarray]]  # `_placed_against_truth`, as a list
+
+
 def _video_errors(
     frames: list[FrameEntry], gt: list[np.ndarray], size: tuple[int, int]
 ) -> dict[int, float]:
     """Corner error (px) of each registered frame of the first frame's segment, vs the truth."""
-    return {i: corner_error(H, H_gt, size) for i, H, H_gt in _placed_against_truth(frames, gt)}
+    return _corner_errors(list(_placed_against_truth(frames, gt)), size)
+
+
+def _corner_errors(placed: Placed, size: tuple[int, int]) -> dict[int, float]:
+    return {i: corner_error(H, H_gt, size) for i, H, H_gt in placed}
 
 
 def _view_errors(
@@ -121,8 +128,11 @@ def _view_errors(
 ) -> dict[str, float]:
     """The corner error taken apart, means over the frames `_video_errors` scores: the shift
     at the frame centre (px), the zoom (%) and the roll (degrees) of each frame's error
-    (`geometry.view_error`); nan without frames."""
-    placed = _placed_against_truth(frames, gt)
+    (`geometry.view_error`); empty without frames (the results' nan)."""
+    return _view_parts(list(_placed_against_truth(frames, gt)), size)
+
+
+def _view_parts(placed: Placed, size: tuple[int, int]) -> dict[str, float]:
     parts = np.array([view_error(H, H_gt, size) for _, H, H_gt in placed])
     if not len(parts):
         return {}
@@ -392,8 +402,8 @@ def evaluate_video(
     parts: dict[str, float] = {}
     if gt_file.is_file() and size is not None:
         gt = load_ground_truth(gt_file)
-        errors = _video_errors(frames, gt, size)
-        parts = _view_errors(frames, gt, size)
+        placed = list(_placed_against_truth(frames, gt))  # each frame's warning once
+        errors, parts = _corner_errors(placed, size), _view_parts(placed, size)
         steps = _step_errors(frames, gt, size)
     step_values = np.array(list(steps.values()))
     # every frame the video holds counts, those the gate skipped too (a frame skipped as
