@@ -212,7 +212,10 @@ def _tracked(
     found, ok = track_points(
         features.texture, reference.texture, xy_cur, pred, config.registration.track_window_px
     )
-    if ok.sum() < min(TRACK_MIN_POINTS, config.registration.min_inliers):
+    refit_config = dataclasses.replace(
+        config.registration, min_inliers=min(TRACK_MIN_POINTS, config.registration.min_inliers)
+    )
+    if ok.sum() < refit_config.min_inliers:
         return registration
     h, w = shape
     centre = np.array([[w / 2, h / 2]])
@@ -226,9 +229,6 @@ def _tracked(
         relaxed = perspective.needed(evidence, fitted)
         return relaxed
 
-    refit_config = dataclasses.replace(
-        config.registration, min_inliers=min(TRACK_MIN_POINTS, config.registration.min_inliers)
-    )
     refit = estimate_motion(xy_cur[ok], found[ok], refit_config, shape, model, relax)
     if not refit.ok:
         return registration

@@ -123,16 +123,10 @@ def _corner_errors(placed: Placed, size: tuple[int, int]) -> dict[int, float]:
     return {i: corner_error(H, H_gt, size) for i, H, H_gt in placed}
 
 
-def _view_errors(
-    frames: list[FrameEntry], gt: list[np.ndarray], size: tuple[int, int]
-) -> dict[str, float]:
-    """The corner error taken apart, means over the frames `_video_errors` scores: the shift
-    at the frame centre (px), the zoom (%) and the roll (degrees) of each frame's error
-    (`geometry.view_error`); empty without frames (the results' nan)."""
-    return _view_parts(list(_placed_against_truth(frames, gt)), size)
-
-
 def _view_parts(placed: Placed, size: tuple[int, int]) -> dict[str, float]:
+    """The corner error taken apart, means over the frames: the shift at the frame centre
+    (px), the zoom (%) and the roll (degrees) of each frame's error (`geometry.view_error`);
+    empty without frames (the results' nan)."""
     parts = np.array([view_error(H, H_gt, size) for _, H, H_gt in placed])
     if not len(parts):
         return {}

@@ -82,11 +82,11 @@ def synthesize(request: SynthRequest) -> Synthesized:
     check_request(request)
     if request.curved_pairs:
         return _write_curved_pairs(request)
-    make = SynthParams  # the profile: its defaults, or hard or realistic ones
-    if request.hard or request.realistic:
-        make = SynthParams.hard if request.hard else SynthParams.realistic
-    if request.realistic and request.fast:
-        make = SynthParams.realistic_fast
+    make = SynthParams  # the profile: its defaults, or hard, realistic or fast realistic ones
+    if request.hard:
+        make = SynthParams.hard
+    elif request.realistic:
+        make = SynthParams.realistic_fast if request.fast else SynthParams.realistic
     params = make(
         n_frames=request.frames,
         size=parse_size(request.size or VIDEO_SIZE),
