@@ -107,6 +107,8 @@ class RegistrationConfig:
     # the corners): the matches set the perspective where they span the frame; 0 = pure model
     track_window_px: int = 31  # video: re-localise each registration's inliers by pyramidal
     # Lucas-Kanade in windows of this side on the band-passed frames, then refit (0: off)
+    align_windows: bool = True  # with tracking: before it, one similarity aligned over all the
+    # windows together on the smoothed band-passed frames (the points start from it)
     flow_fallback: bool = True  # video, keyframes: a frame no descriptors register is placed by
     # optical flow from its predecessor (motion prior, forward-backward check, same rules)
     refine_levels: int = 3  # `mosaic register`: coarse-to-fine levels from the working size up to

@@ -50,6 +50,7 @@ class Features:
     sizes: np.ndarray  # (N,) float32 keypoint diameter in px, for the SIFT descriptor
     descriptors: np.ndarray  # (N, D) float32 (L2 distance) or uint8 (binary, Hamming distance)
     texture: np.ndarray | None = None  # (H, W) uint8 band-passed frame (`pixel_refine.lk_texture`)
+    coarse: np.ndarray | None = None  # (H/2, W/2) float32 (`pixel_refine.coarse_texture`)
 
     def __len__(self) -> int:
         return len(self.xy)

@@ -43,7 +43,7 @@ from mosaic.io import UNDECODABLE, Frame, Lookahead
 from mosaic.lens_rim import Circle, LensRimMask, outside_rim_removed
 from mosaic.matching import Matches
 from mosaic.photometry import VideoPhotometry
-from mosaic.pixel_refine import lk_texture
+from mosaic.pixel_refine import coarse_texture, lk_texture
 from mosaic.preprocess import (
     Deinterlacer,
     FrameGate,
@@ -86,6 +86,7 @@ class FrameRecord:
     reproj_error_px: float = float("nan")
     model: str | None = None  # motion model of the registration that placed it
     coverage: float = float("nan")  # share of the frame inside its inliers' convex hull
+    aligned_px: float = float("nan")  # how far the windows' alignment moved its registration
     reference: int | None = None  # input index of the frame it was registered against
     quality: float = float("nan")  # agreement with the mosaic under it (mosaic.quality)
     flagged: bool = False  # quality under [compose] quality_threshold: likely misregistered
@@ -269,7 +270,10 @@ class MosaicBuilder:
         features = timer.run("describe", self.extractor.describe, prepared, detected)
         if self.config.registration.track_window_px > 0:
             texture = timer.run("describe", lk_texture, prepared.gray, prepared.mask)
-            features = dataclasses.replace(features, texture=texture)
+            coarse = None
+            if self.config.registration.align_windows:
+                coarse = timer.run("describe", coarse_texture, texture)
+            features = dataclasses.replace(features, texture=texture, coarse=coarse)
         record.n_keypoints = len(features)
         return Extracted(record, image, prepared, features, H_frame_to_work=S, work=work)
 

@@ -129,6 +129,121 @@ def track_points(
     return found, ok
 
 
+ALIGN_BLUR_PX = 2.0  # `coarse_texture`: the tracking texture blurred by this sd, then halved
+ALIGN_HALF_PX = 10  # `align_similarity`: windows of 21x21 coarse (~42x42 frame) pixels
+ALIGN_ITERATIONS = 10
+ALIGN_STOP_PX = 0.01  # ... or until a step moves the windows less than this
+ALIGN_MAX_ZOOM = 0.05  # a refinement that changes the zoom by more than this ...
+ALIGN_MAX_SHIFT_PX = 4.0  # ... or moves the windows' centre further is not taken
+ALIGN_MIN_PIXELS = 500  # fewer window pixels seen in both frames leave the estimate unrefined
+
+
+def coarse_texture(texture: np.ndarray) -> np.ndarray:
+    """A `lk_texture` blurred (`ALIGN_BLUR_PX`) and halved, as float32 around 0, NaN where it
+    is flat (no retina: the view's border, a lens's rim): where a window's own Lucas-Kanade
+    stops in the noise a few pixels from the truth, the many windows of one similarity on this
+    smoother texture still converge (`align_similarity`)."""
+    smooth = cv2.GaussianBlur(cv2.subtract(texture, 128.0, dtype=cv2.CV_32F), (0, 0), ALIGN_BLUR_PX)
+    h, w = texture.shape
+    size = ((w + 1) // 2, (h + 1) // 2)
+    half = cv2.resize(smooth, size, interpolation=cv2.INTER_AREA)
+    flat = cv2.erode((texture == 128).view(np.uint8), np.ones((3, 3), np.uint8))
+    if flat.any():  # a block of exact 128s is `lk_texture`'s no-retina value, not texture
+        half[cv2.resize(flat, size, interpolation=cv2.INTER_AREA) > 0] = np.nan
+    return half
+
+
+def align_similarity(
+    moving: np.ndarray, fixed: np.ndarray, xy: np.ndarray, H_moving_to_fixed: np.ndarray
+) -> np.ndarray | None:
+    """The similarity H_moving_to_fixed nearest the given one that best aligns windows around
+    the moving points (N, 2) with the fixed frame, on two `coarse_texture`s: one Gauss-Newton
+    solve (inverse compositional) for the four parameters over all windows together. Per
+    window, Lucas-Kanade on noisy magnified frames keeps about half of its start's error in
+    zoom (measured); jointly, the noise of each window averages out. None where too few
+    pixels are seen in both frames or the solve leaves the start by more than
+    ALIGN_MAX_ZOOM in zoom or ALIGN_MAX_SHIFT_PX at the windows' centre."""
+    if len(xy) == 0:
+        return None
+    q = (xy.astype(np.float64) - 0.5) / 2.0  # coarse pixel coordinates
+    c = q.mean(0)
+    sc = 1.0 / max(float(np.abs(q - c).max()), 1.0)
+    o = np.arange(-ALIGN_HALF_PX, ALIGN_HALF_PX + 1, dtype=np.float32)
+    ox, oy = np.meshgrid(o, o)
+    # one row of window pixels per point: remap's maps are limited to 32767 columns
+    X = (q[:, 0, None, None].astype(np.float32) + ox).reshape(len(q), -1)
+    Y = (q[:, 1, None, None].astype(np.float32) + oy).reshape(len(q), -1)
+    template = _sample(moving, X, Y)
+    gx = _sample(cv2.Sobel(moving, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), X, Y)
+    gy = _sample(cv2.Sobel(moving, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), X, Y)
+    cx, cy, s32 = np.float32(c[0]), np.float32(c[1]), np.float32(sc)  # keep float32
+    zx, zy = ((X - cx) * s32).ravel(), ((Y - cy) * s32).ravel()
+    seen = np.isfinite(template) & np.isfinite(gx) & np.isfinite(gy)
+    template[~seen] = gx[~seen] = gy[~seen] = 0.0  # no texture in the moving frame: adds nothing
+    # steepest descent images (rows) of the template for the warp (1 + a + ib) z + t, in
+    # units of sc
+    steepest = np.stack([gx * zx + gy * zy, gy * zx - gx * zy, gx, gy]) / s32
+    try:  # inverse compositional: the Hessian is the template's, the same at every step
+        hessian_inv = np.linalg.inv((steepest @ steepest.T).astype(np.float64))
+    except np.linalg.LinAlgError:
+        return None
+    m0, t0 = _complex_similarity(H_moving_to_fixed, xy.astype(np.float64), c, sc)
+    m, t = m0, t0
+    for _ in range(ALIGN_ITERATIONS):
+        a, b = np.float32(m.real / sc), np.float32(m.imag / sc)
+        wx = zx * a - zy * b + np.float32(t.real / sc + c[0])
+        wy = zx * b + zy * a + np.float32(t.imag / sc + c[1])
+        error = _sample(fixed, wx.reshape(X.shape), wy.reshape(X.shape)) - template
+        lost = np.isnan(error)  # warped outside the fixed frame's texture: adds nothing
+        if np.count_nonzero(seen & ~lost) < ALIGN_MIN_PIXELS:
+            return None
+        error[lost] = 0.0
+        d = hessian_inv @ (steepest @ error).astype(np.float64)
+        step = 1.0 + d[0] + 1j * d[1]  # m, t <- (m, t) composed with the inverse step
+        m, t = m / step, t - m * (d[2] + 1j * d[3]) / step
+        if np.abs(d).max() < ALIGN_STOP_PX / 2 * sc:
+            break
+    if abs(abs(m) / abs(m0) - 1.0) > ALIGN_MAX_ZOOM or abs(t - t0) / sc > ALIGN_MAX_SHIFT_PX / 2:
+        return None
+    N = _normaliser(c, sc)
+    S = np.array([[m.real, -m.imag, t.real], [m.imag, m.real, t.imag], [0.0, 0.0, 1.0]])
+    return np.linalg.inv(N) @ S @ N
+
+
+def _normaliser(c: np.ndarray, sc: float) -> np.ndarray:
+    """Frame pixels to `align_similarity`'s coordinates: coarse pixels (frame / 2), centred
+    on c, scaled by sc."""
+    return np.array(
+        [[sc / 2, 0.0, -sc * (0.25 + c[0])], [0.0, sc / 2, -sc * (0.25 + c[1])], [0.0, 0.0, 1.0]]
+    )
+
+
+def _complex_similarity(
+    H: np.ndarray, xy: np.ndarray, c: np.ndarray, sc: float
+) -> tuple[complex, complex]:
+    """(m, t) of the similarity z -> m z + t (normalised coordinates) nearest H on the points
+    xy (least squares): H may carry perspective."""
+    N = _normaliser(c, sc)
+    a = apply_homography(N, xy) @ np.array([1.0, 1j])
+    b = apply_homography(N @ H, xy) @ np.array([1.0, 1j])
+    ma, mb = a.mean(), b.mean()
+    m = complex((np.conj(a - ma) * (b - mb)).sum() / max(float((np.abs(a - ma) ** 2).sum()), 1e-12))
+    return m, complex(mb - m * ma)
+
+
+def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples (1-D float32) of a float32 image at (x, y) (2-D), NaN outside it."""
+    out = cv2.remap(
+        image,
+        x.astype(np.float32, copy=False),
+        y.astype(np.float32, copy=False),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=np.nan,
+    )
+    return out.ravel()
+
+
 FLOW_LEVELS = 3  # pyramid levels for `flow_points`: the motion prior may be ~100 px off
 FLOW_BACK_PX = 1.0  # a point tracked there and back must return this close to its start
 

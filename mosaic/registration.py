@@ -88,6 +88,9 @@ class Registration:
     points: tuple[np.ndarray, np.ndarray] | None = None  # inlier (cur, prev) points
     # how much a homography explains beyond the model (`perspective_evidence`); nan: not asked
     perspective_evidence: float = float("nan")
+    # video tracking: how far the windows' alignment moved the fit at the frame's corners
+    # (mean px) before the points were tracked from it (`tracking._tracked`); nan: not aligned
+    aligned_px: float = float("nan")
 
     @property
     def ok(self) -> bool:

@@ -73,12 +73,14 @@ class FrameEntry:
     reference: int | None = None  # input index of the frame it was registered against
     model: str | None = None
     coverage: float | None = None
+    aligned_px: float | None = None  # None: not aligned (no tracking, or the alignment declined)
     reason: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        entry = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)[:-4]}
+        entry = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)[:-5]}
         if self.reference is not None:
             entry |= {"reference": self.reference, "model": self.model, "coverage": self.coverage}
+            entry |= {"aligned_px": self.aligned_px}
         return entry | _present(reason=self.reason)
 
     @classmethod
@@ -106,6 +108,7 @@ class FrameEntry:
             reference=data.get("reference"),
             model=data.get("model"),
             coverage=data.get("coverage"),
+            aligned_px=data.get("aligned_px"),
             reason=data.get("reason"),
         )
 
@@ -114,7 +117,8 @@ class FrameEntry:
 
 _TRACKING_COUNTERS = (
     "keyframes", "relocalised", "placed_by_previous", "placed_by_flow", "loop_closures",
-    "loop_attempts", "extra_links", "tracked_registrations", "perspective_relaxed",
+    "loop_attempts", "extra_links", "tracked_registrations", "aligned_registrations",
+    "perspective_relaxed",
 )  # fmt: skip
 
 
@@ -133,6 +137,7 @@ class TrackingSummary:
     loop_attempts: int | None = None
     extra_links: int | None = None
     tracked_registrations: int | None = None
+    aligned_registrations: int | None = None
     perspective_relaxed: int | None = None
     refinement: list[dict[str, Any] | None] | None = None  # posegraph's figures, per segment
     rerendered: bool = False
@@ -481,6 +486,7 @@ def _frame_entry(record: FrameRecord, mosaics: dict[int, SegmentMosaic]) -> Fram
         reference=record.reference if placed else None,
         model=record.model if placed else None,
         coverage=_rounded(record.coverage, 3) if placed else None,
+        aligned_px=_rounded(record.aligned_px, 2) if placed else None,
         reason=record.reason,
     )
 

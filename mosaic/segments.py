@@ -293,7 +293,7 @@ def note_registration(record: FrameRecord, track: Track) -> None:
     registration = track.registration
     if registration is None:
         record.n_matches = record.n_inliers = 0
-        record.reproj_error_px = record.coverage = float("nan")
+        record.reproj_error_px = record.coverage = record.aligned_px = float("nan")
         record.model = record.reference = None
         return
     record.n_matches = registration.n_matches
@@ -301,5 +301,6 @@ def note_registration(record: FrameRecord, track: Track) -> None:
     record.reproj_error_px = registration.reproj_error_px
     record.model = registration.model
     record.coverage = registration.coverage
+    record.aligned_px = registration.aligned_px
     record.reference = track.reference_index
     record.by_flow = track.by_flow

@@ -29,9 +29,9 @@ import numpy as np
 
 from mosaic.config import Config
 from mosaic.features import Features
-from mosaic.geometry import apply_homography, frame_corners
+from mosaic.geometry import apply_homography, corner_error, frame_corners
 from mosaic.matching import Matches, match_descriptors
-from mosaic.pixel_refine import flow_points, texture_agreement, track_points
+from mosaic.pixel_refine import align_similarity, flow_points, texture_agreement, track_points
 from mosaic.posegraph import Constraint, Refinement, refine_poses, refine_tilted_poses
 from mosaic.registration import Registration, estimate_motion, perspective_needed
 
@@ -127,6 +127,7 @@ class PerspectiveEvidence:
     def __init__(self) -> None:
         self._values: deque[float] = deque(maxlen=self.WINDOW)
         self.tracked = 0  # registrations refitted on tracked points (for the report)
+        self.aligned = 0  # of which tracked from the windows' alignment
         self.relaxed = 0  # of which relaxed by the perspective prior
 
     def add(self, value: float) -> None:
@@ -208,7 +209,13 @@ def _tracked(
     xy_cur = registration.points[0]
     if len(xy_cur) > TRACK_MAX_POINTS:  # evenly through the list: spread over the frame
         xy_cur = xy_cur[np.linspace(0, len(xy_cur) - 1, TRACK_MAX_POINTS).round().astype(int)]
-    pred = apply_homography(registration.H_moving_to_fixed, xy_cur.astype(np.float64))
+    H_start, aligned_px = registration.H_moving_to_fixed, float("nan")
+    if features.coarse is not None and reference.coarse is not None:
+        aligned = align_similarity(features.coarse, reference.coarse, xy_cur, H_start)
+        if aligned is not None:
+            aligned_px = corner_error(aligned, H_start, (shape[1], shape[0]))
+            H_start = aligned
+    pred = apply_homography(H_start, xy_cur.astype(np.float64))
     found, ok = track_points(
         features.texture, reference.texture, xy_cur, pred, config.registration.track_window_px
     )
@@ -234,8 +241,10 @@ def _tracked(
         return registration
     perspective.relaxed += relaxed
     perspective.tracked += 1
+    perspective.aligned += int(np.isfinite(aligned_px))
     return dataclasses.replace(
         registration,
+        aligned_px=aligned_px,
         H_moving_to_fixed=refit.H_moving_to_fixed,
         reproj_error_px=refit.reproj_error_px,
         model=refit.model,
@@ -788,6 +797,7 @@ class KeyframeTracker:
             "extra_links": c.extra_links,
             "placed_by_flow": c.by_flow,
             "tracked_registrations": self._perspective.tracked,
+            "aligned_registrations": self._perspective.aligned,
             "perspective_relaxed": self._perspective.relaxed,
             "refinement": c.refinement or None,
         }

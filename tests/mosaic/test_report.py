@@ -52,7 +52,8 @@ def test_written_report_has_its_optional_keys(written) -> None:
     assert skipped.status == SKIPPED and skipped.reason is not None
     assert "reason" in skipped.to_dict() and "reference" not in skipped.to_dict()
     placed = [f for f in report.frames if f.status == REGISTERED and f.reference is not None]
-    assert placed and all({"reference", "model", "coverage"} <= f.to_dict().keys() for f in placed)
+    keys = {"reference", "model", "coverage", "aligned_px"}
+    assert placed and all(keys <= f.to_dict().keys() for f in placed)
     assert "error" not in json.loads(report.to_json())["summary"]  # left out, not null
 
 
