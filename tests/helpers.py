@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -39,6 +40,30 @@ def similarity(
     H[0, 2] += tx
     H[1, 2] += ty
     return H
+
+
+def noisy_magnified_views(
+    fundus: np.ndarray, zoom_error: float, shift_error_px: float
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Four noise draws of two 400x300 views of the photograph magnified 4x (noise sd 8 on
+    both, the second blurred by 2 px and 20 % brighter), for registrations a → b that are
+    off: (a, b, corner points of a, the truth H_a_to_b, a start that is `zoom_error` too
+    zoomed about the points' centre and `shift_error_px` off in x)."""
+    g = cv2.resize(fundus, None, fx=4.0, fy=4.0, interpolation=cv2.INTER_CUBIC)[..., 1]
+    H_b_to_a = similarity(1.5, 1.01, 7.3, -4.6, center=(200, 150))
+    a0, b0 = crop_pair(g, H_b_to_a, (1400, 1000), (400, 300))
+    H_a_to_b = np.linalg.inv(H_b_to_a)
+    xy = cv2.goodFeaturesToTrack(a0, 100, 0.01, 8).reshape(-1, 2).astype(np.float64)
+    xy = xy[(xy > 30).all(1) & (xy < [370, 270]).all(1)]
+    c = xy.mean(0)
+    z, dx, dy = 1.0 + zoom_error, shift_error_px - zoom_error * c[0], -zoom_error * c[1]
+    off = np.array([[z, 0, dx], [0, z, dy], [0, 0, 1]])
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        a = np.clip(a0 + rng.normal(0, 8, a0.shape), 0, 255).astype(np.uint8)
+        b = cv2.GaussianBlur(b0.astype(np.float32), (0, 0), 2.0) * 1.2
+        b = np.clip(b + rng.normal(0, 8, b.shape), 0, 255).astype(np.uint8)
+        yield a, b, xy, H_a_to_b, off @ H_a_to_b
 
 
 def errors_to_first(

@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from mosaic.geometry import corner_error
 from mosaic.pixel_refine import level_scales, refine_pair, relocalise
 from mosaic.registration import apply_homography, apply_quadratic, robust_fit
 from mosaic.synthetic.curved import curved_pair
@@ -130,37 +131,18 @@ def test_one_similarity_over_all_windows_removes_a_zoom_error_tracking_keeps_par
     the same windows tracked one by one and refitted give (mean over four noise draws,
     measured 0.22 against 0.49 px: per window, Lucas-Kanade stops short in the noise)."""
     from mosaic.pixel_refine import align_similarity, coarse_texture, lk_texture, track_points
-    from tests.helpers import crop_pair, similarity
-
-    g = cv2.resize(fundus, None, fx=4.0, fy=4.0, interpolation=cv2.INTER_CUBIC)[..., 1]
-    H_b_to_a = similarity(1.5, 1.01, 7.3, -4.6, center=(200, 150))
-    a0, b0 = crop_pair(g, H_b_to_a, (1400, 1000), (400, 300))
-    H_a_to_b = np.linalg.inv(H_b_to_a)
-    corners = np.array([[0, 0], [400, 0], [400, 300], [0, 300]], np.float64)
-
-    def error(H: np.ndarray) -> float:
-        moved = apply_homography(H, corners) - apply_homography(H_a_to_b, corners)
-        return float(np.linalg.norm(moved, axis=1).mean())
+    from tests.helpers import noisy_magnified_views
 
     aligned, tracked = [], []
-    for seed in range(4):
-        rng = np.random.default_rng(seed)
-        a = np.clip(a0 + rng.normal(0, 8, a0.shape), 0, 255).astype(np.uint8)
-        b = cv2.GaussianBlur(b0.astype(np.float32), (0, 0), 2.0) * 1.2
-        b = np.clip(b + rng.normal(0, 8, b.shape), 0, 255).astype(np.uint8)
-        xy = cv2.goodFeaturesToTrack(a0, 100, 0.01, 8).reshape(-1, 2).astype(np.float64)
-        xy = xy[(xy > 30).all(1) & (xy < [370, 270]).all(1)]
-        c = xy.mean(0)
-        off = np.array([[1.01, 0, 1.5 - 0.01 * c[0]], [0, 1.01, -0.01 * c[1]], [0, 0, 1]])
-        H_start = off @ H_a_to_b
+    for a, b, xy, H_a_to_b, H_start in noisy_magnified_views(fundus, 0.01, 1.5):
         ta, tb = lk_texture(a), lk_texture(b)
         H = align_similarity(coarse_texture(ta), coarse_texture(tb), xy, H_start)
         assert H is not None
-        aligned.append(error(H))
+        aligned.append(corner_error(H, H_a_to_b, (400, 300)))
         found, ok = track_points(ta, tb, xy, apply_homography(H_start, xy), 31)
         S = cv2.estimateAffinePartial2D(xy[ok], found[ok], method=cv2.LMEDS)[0]
-        tracked.append(error(np.vstack([S, [0, 0, 1]])))
-    assert error(H_start) > 2.5
+        tracked.append(corner_error(np.vstack([S, [0, 0, 1]]), H_a_to_b, (400, 300)))
+    assert corner_error(H_start, H_a_to_b, (400, 300)) > 2.5
     assert np.mean(aligned) < 0.3, aligned
     assert np.mean(aligned) < 0.75 * np.mean(tracked), (aligned, tracked)
 

@@ -556,12 +556,8 @@ def test_tracking_starts_from_the_windows_alignment_and_says_how_far_it_moved(fu
     from mosaic.features import Features
     from mosaic.pixel_refine import coarse_texture, lk_texture
     from mosaic.tracking import PerspectiveEvidence, _tracked
-    from tests.helpers import crop_pair, similarity
+    from tests.helpers import noisy_magnified_views
 
-    g = cv2.resize(fundus, None, fx=4.0, fy=4.0, interpolation=cv2.INTER_CUBIC)[..., 1]
-    H_b_to_a = similarity(1.5, 1.01, 7.3, -4.6, center=(200, 150))
-    a0, b0 = crop_pair(g, H_b_to_a, (1400, 1000), (400, 300))
-    H_a_to_b = np.linalg.inv(H_b_to_a)
     config = Config()
 
     def features(image, coarse):
@@ -572,16 +568,7 @@ def test_tracking_starts_from_the_windows_alignment_and_says_how_far_it_moved(fu
         )  # fmt: skip
 
     errors: dict[bool, list[float]] = {True: [], False: []}
-    for seed in range(4):
-        rng = np.random.default_rng(seed)
-        a = np.clip(a0 + rng.normal(0, 8, a0.shape), 0, 255).astype(np.uint8)
-        b = cv2.GaussianBlur(b0.astype(np.float32), (0, 0), 2.0) * 1.2
-        b = np.clip(b + rng.normal(0, 8, b.shape), 0, 255).astype(np.uint8)
-        xy = cv2.goodFeaturesToTrack(a0, 100, 0.01, 8).reshape(-1, 2).astype(np.float64)
-        xy = xy[(xy > 30).all(1) & (xy < [370, 270]).all(1)]
-        c = xy.mean(0)
-        off = np.array([[1.02, 0, 2.0 - 0.02 * c[0]], [0, 1.02, -0.02 * c[1]], [0, 0, 1]])
-        H_start = off @ H_a_to_b
+    for a, b, xy, H_a_to_b, H_start in noisy_magnified_views(fundus, 0.02, 2.0):
         start_error = corner_error(H_start, H_a_to_b, (400, 300))
         points = (xy, apply_homography(H_start, xy))
         registration = Registration(
