@@ -165,7 +165,8 @@ def align_similarity(
     ALIGN_MAX_ZOOM in zoom or ALIGN_MAX_SHIFT_PX at the windows' centre."""
     if len(xy) == 0:
         return None
-    q = (xy.astype(np.float64) - 0.5) / 2.0  # coarse pixel coordinates
+    xy = xy.astype(np.float64)
+    q = (xy - 0.5) / 2.0  # coarse pixel coordinates
     c = q.mean(0)
     sc = 1.0 / max(float(np.abs(q - c).max()), 1.0)
     o = np.arange(-ALIGN_HALF_PX, ALIGN_HALF_PX + 1, dtype=np.float32)
@@ -187,7 +188,7 @@ def align_similarity(
         hessian_inv = np.linalg.inv((steepest @ steepest.T).astype(np.float64))
     except np.linalg.LinAlgError:
         return None
-    m0, t0 = _complex_similarity(H_moving_to_fixed, xy.astype(np.float64), c, sc)
+    m0, t0 = _complex_similarity(H_moving_to_fixed, xy, c, sc)
     m, t = m0, t0
     for _ in range(ALIGN_ITERATIONS):
         a, b = np.float32(m.real / sc), np.float32(m.imag / sc)

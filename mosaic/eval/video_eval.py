@@ -112,14 +112,8 @@ def _placed_against_truth(
 Placed = list[tuple[int, np.ndarray, np.ndarray]]  # `_placed_against_truth`, as a list
 
 
-def _video_errors(
-    frames: list[FrameEntry], gt: list[np.ndarray], size: tuple[int, int]
-) -> dict[int, float]:
-    """Corner error (px) of each registered frame of the first frame's segment, vs the truth."""
-    return _corner_errors(list(_placed_against_truth(frames, gt)), size)
-
-
 def _corner_errors(placed: Placed, size: tuple[int, int]) -> dict[int, float]:
+    """Corner error (px) of each placed frame against the truth."""
     return {i: corner_error(H, H_gt, size) for i, H, H_gt in placed}
 
 

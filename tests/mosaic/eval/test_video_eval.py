@@ -15,13 +15,13 @@ from typer.testing import CliRunner
 from mosaic.cli import app as mosaic_app
 from mosaic.config import Config, with_overrides
 from mosaic.eval.video_eval import (
+    _corner_errors,
     _frame_references,
     _leading_accurate,
     _placed_against_truth,
     _quality_vs_error,
     _step_errors,
     _unique_stems,
-    _video_errors,
     _view_parts,
     evaluate_video,
 )
@@ -65,7 +65,7 @@ def test_video_errors_and_frames_until_failure_by_hand():
         {"index": 3, "status": "registered", "segment": 0, "H_to_canvas": (canvas @ off).tolist()},
     ]
     frames = [_entry(**e) for e in entries]
-    errors = _video_errors(frames, gt, (40, 30))
+    errors = _corner_errors(list(_placed_against_truth(frames, gt)), (40, 30))
     assert errors == pytest.approx({0: 0.0, 1: 0.0, 3: 12.0})
     assert _leading_accurate(frames, errors) == 2  # frame 3 is off by more than 10 px
     assert _leading_accurate(frames, None) == 3  # without ground truth: registration only
@@ -171,7 +171,7 @@ def test_step_errors_against_each_frames_reference():
     assert _frame_references(frames) == {1: 0, 2: 1, 3: 2, 5: 2, 6: 0, 7: 6, 9: 8}
     assert _step_errors(frames, gt, size) == pytest.approx(expected, abs=1e-9)
     # Frame -> first frame: only frame 2 is off; frames registered to it were placed right.
-    errors = _video_errors(frames, gt, size)
+    errors = _corner_errors(list(_placed_against_truth(frames, gt)), size)
     assert errors == pytest.approx({0: 0, 1: 0, 2: 8, 3: 0, 5: 0, 6: 0, 7: 0}, abs=1e-9)
     # taken apart: frame 2's 8 px are a shift (the same at the centre), no zoom, no roll
     parts = _view_parts(list(_placed_against_truth(frames, gt)), size)
@@ -259,7 +259,7 @@ def test_video_evaluation_end_to_end(small_video, tmp_path):
     assert report["summary"]["strategy"] == "keyframes" and len(report["frames"]) == 6
     gt = load_ground_truth(gt_path_for(small_video))
     frames = BuildReport.from_dict(report).frames
-    errors = _video_errors(frames, gt, (240, 160))
+    errors = _corner_errors(list(_placed_against_truth(frames, gt)), (240, 160))
     assert [[i, pytest.approx(e, abs=1e-3)] for i, e in sorted(errors.items())] == with_truth[
         "errors"
     ]
