@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import cv2
 import numpy as np
@@ -33,6 +33,9 @@ from mosaic.config import FeaturesConfig
 from mosaic.errors import ConfigError, DetectorWeightsError
 from mosaic.geometry import rescaled
 from mosaic.preprocess import Prepared, erode_by_disc
+
+if TYPE_CHECKING:
+    from mosaic.pixel_refine import CoarseTexture
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +53,7 @@ class Features:
     sizes: np.ndarray  # (N,) float32 keypoint diameter in px, for the SIFT descriptor
     descriptors: np.ndarray  # (N, D) float32 (L2 distance) or uint8 (binary, Hamming distance)
     texture: np.ndarray | None = None  # (H, W) uint8 band-passed frame (`pixel_refine.lk_texture`)
-    coarse: np.ndarray | None = None  # (H/2, W/2) float32 (`pixel_refine.coarse_texture`)
+    coarse: CoarseTexture | None = None  # (`pixel_refine.coarse_texture`)
 
     def __len__(self) -> int:
         return len(self.xy)
