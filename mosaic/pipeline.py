@@ -204,7 +204,9 @@ class MosaicBuilder:
         self._compositor = LiveCompositor(compose, self._photometry, correct=self._live_quality)
         self._gain_solution: str | None = "live" if self._live_quality else None
         self._started = time.perf_counter()
-        self.overlap = OverlapTrial(config.pipeline.overlap)
+        self.overlap = OverlapTrial(
+            config.pipeline.overlap, turns=self.extractor.detector.takes_every_core
+        )
         self._turns = Turns(on=False)  # `stream` sets its own
 
     def process(
@@ -219,15 +221,16 @@ class MosaicBuilder:
         stopped too)."""
         extracted = (self.extract(f.index, f.image, f.error) for f in frames)
         self._turns = turns = Turns(on=self.extractor.detector.takes_every_core)
-        ahead = self.overlap.ahead()
+        ahead, take_turns = self.overlap.ahead(), self.overlap.turns()
         with Lookahead(turns.ended_after(extracted), depth=2, ahead=ahead) as items, turns:
             for i, item in enumerate(items):
-                turns.before_register(i, items.ahead)  # as the items in flight were asked for
+                # as the items in flight were asked for
+                turns.before_register(i, items.ahead and take_turns)
                 record = self.add_frame(item)
                 turns.registered()
                 yield record
                 self.overlap.tick()
-                items.ahead = self.overlap.ahead()
+                items.ahead, take_turns = self.overlap.ahead(), self.overlap.turns()
 
     def extract(self, index: int, image: np.ndarray | None, error: str | None = None) -> Extracted:
         """Preprocess, gate, mask overlays, detect and describe one frame (independent of other

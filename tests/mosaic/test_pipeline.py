@@ -394,6 +394,39 @@ def test_overlap_trial_keeps_the_faster_way(overlapped_ms, serial_ms, chosen):
     assert ways[-10:] == [chosen] * 10
 
 
+@pytest.mark.parametrize(
+    ("ms", "chosen"),
+    [
+        ({"serial": 61, "turns": 69, "overlapped": 53}, "overlapped"),
+        ({"serial": 54, "turns": 45, "overlapped": 48}, "turns"),
+        ({"serial": 50, "turns": 69, "overlapped": 53}, "serial"),
+    ],
+)
+def test_overlap_trial_times_turns_and_free_overlap_where_the_network_takes_every_core(ms, chosen):
+    """Where the network takes every core, the trial times three ways (serial, overlapped
+    with turns, overlapped freely: which wins depends on the machine) and keeps the fastest;
+    the frames right after each switch are not timed."""
+    trial = OverlapTrial("auto", turns=True)
+    clock, ways = 0.0, []
+
+    def now() -> float:
+        return clock
+
+    trial._clock = now
+    trial.tick()
+    for _ in range(60):
+        way = "turns" if trial.turns() else "overlapped" if trial.ahead() else "serial"
+        ways.append(way)
+        clock += ms[way] / 1e3
+        trial.tick()
+    first, settled = OverlapTrial.WARMUP + OverlapTrial.FRAMES, OverlapTrial.FRAMES + 2
+    assert ways[:first] == ["serial"] * first
+    assert ways[first : first + settled] == ["turns"] * settled
+    assert ways[first + settled : first + 2 * settled] == ["overlapped"] * settled
+    assert trial.way == chosen and trial.chosen is (chosen != "serial")
+    assert ways[-10:] == [chosen] * 10
+
+
 def test_overlap_trial_runs_again_and_follows_a_change(monkeypatch):
     monkeypatch.setattr(OverlapTrial, "RETRIAL", 60)
     trial = OverlapTrial("auto")
