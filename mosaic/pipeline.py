@@ -537,6 +537,7 @@ class MosaicBuilder:
             detector=self.extractor.detector.name,
             precision=getattr(self.extractor.detector, "precision", None),
             overlap=self.overlap.chosen,
+            extraction=self.overlap.way,
             stopped=self.stopped,
             field_offset_px=self._fields.median_offset_px,
             looks_interlaced=self._fields.looks_interlaced,

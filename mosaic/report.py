@@ -190,6 +190,7 @@ class Summary:
     retina_diameter_px: float | None
     strategy: str
     overlap: bool | None
+    extraction: str | None  # serial | overlapped | turns (`scheduling.OverlapTrial`)
     models: dict[str, int]  # registered frames per motion model, in MODELS order
     tracking: TrackingSummary
     on_failure: str
@@ -417,6 +418,7 @@ class ReportInputs:
     detector: str
     precision: str | None  # GLAMpoints' network precision ("auto" resolved), else None
     overlap: bool | None  # what `[pipeline] overlap` chose (None: not decided yet)
+    extraction: str | None  # ... and how: serial, overlapped, turns (None: not decided yet)
     stopped: bool  # stopped at the first failed frame (on_failure = "stop")
     field_offset_px: float | None  # median offset of the odd rows from the even rows
     looks_interlaced: bool
@@ -563,6 +565,7 @@ def build_report(
         else round(inputs.retina_diameter_px, 1),
         strategy=inputs.config.pipeline.strategy,
         overlap=inputs.overlap,
+        extraction=inputs.extraction,
         models=_model_counts(records),
         tracking=_tracking_summary(inputs),
         on_failure=inputs.config.pipeline.on_failure,

@@ -54,6 +54,7 @@ class BenchRow:
     frames: int
     peak_rss_mb: float  # process peak so far (monotone over the run)
     overlap: bool | None = None  # next frame extracted meanwhile (auto: as chosen; None: undecided)
+    extraction: str | None = None  # ... serial, overlapped, or with turns (`OverlapTrial`)
     notes: dict[str, Any] = field(default_factory=dict)
 
 
@@ -148,6 +149,7 @@ def run_variant(
         frames=summary.frames_read,
         peak_rss_mb=_peak_rss_mb(),
         overlap=summary.overlap,
+        extraction=summary.extraction,
     )
 
 
@@ -357,7 +359,9 @@ def format_table(rows: list[BenchRow], reference: str = "sift") -> str:
                 ratio,
                 f"{r.registered}/{r.frames}",
                 f"{r.peak_rss_mb:.0f}",
-                {True: "on", False: "off", None: "-"}[r.overlap],
+                {"serial": "off", "overlapped": "on", "turns": "turns"}.get(
+                    r.extraction or "", "-"
+                ),
             ]
         )
     return _aligned(header, lines)
@@ -419,8 +423,9 @@ def format_bench(rows: list[BenchRow], builds: list[BuildRow], env: dict[str, An
     parts = [
         format_table(rows),
         "ms per stage (median); frame = wall time per registered frame, p90 over frames; "
-        "x sift = fps ratio; ovl = extraction of the next frame overlapped (default rows: "
-        f"as [pipeline] overlap chose). {'; '.join(notes)}",
+        "x sift = fps ratio; ovl = the next frame extracted meanwhile: on (freely), turns (its "
+        "network taking turns with the registration) or off (serially); default rows: as "
+        f"[pipeline] overlap chose. {'; '.join(notes)}",
     ]
     if builds:
         parts.append("\n" + format_build_table(builds))

@@ -353,6 +353,10 @@ def test_glampoints_taking_turns_with_the_registration_gives_the_serial_result(v
                 pass
         reports[overlap], turns[overlap] = builder.finish().report.to_dict(), builder._turns.on
     assert turns["on"] == (torch.get_num_threads() > 1) and turns["off"] == turns["on"]
+    extraction = {k: r["summary"]["extraction"] for k, r in reports.items()}
+    assert extraction["off"] == "serial"
+    assert extraction["on"] == ("turns" if turns["on"] else "overlapped")
+    assert extraction["auto"] in ("serial", "overlapped", "turns")
     serial = reports["off"]["frames"]
     assert [f["status"] for f in serial] == ["registered"] * 24
     for overlapped in (reports["on"]["frames"], reports["auto"]["frames"]):
