@@ -149,7 +149,8 @@ class PipelineConfig:
     step: int = 1  # process every step-th frame
     max_frames: int = 0  # stop after this many processed frames; 0: whole video
     overlap: str = "auto"  # extract frame i+1 in a background thread while frame i registers:
-    # on | off | auto (both timed on the first frames and every 500, the faster kept: same results)
+    # on | off | auto (each way timed on the first frames and every 500, the fastest kept: serial,
+    # and for a network on every core with or without turns (scheduling.OverlapTrial); same results)
     checkpoint_every_s: float = 30.0  # write the live mosaic and the report so far (summary.
     # complete = false) this often while streaming, so a killed run leaves them; 0: off
 
