@@ -79,8 +79,12 @@ class FrameEntry:
     def to_dict(self) -> dict[str, Any]:
         entry = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)[:-5]}
         if self.reference is not None:
-            entry |= {"reference": self.reference, "model": self.model, "coverage": self.coverage}
-            entry |= {"aligned_px": self.aligned_px}
+            entry |= {
+                "reference": self.reference,
+                "model": self.model,
+                "coverage": self.coverage,
+                "aligned_px": self.aligned_px,
+            }
         return entry | _present(reason=self.reason)
 
     @classmethod

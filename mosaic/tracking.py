@@ -400,9 +400,9 @@ class KeyframeTracker:
     def _candidates(self, shape: tuple[int, int]) -> list[Keyframe]:
         """Keyframes to try, in order: those the predicted footprint (the last pose) overlaps
         most, the active one first among equals (after the first, only those it overlaps by
-        MIN_CANDIDATE_OVERLAP); then, while lost, a rotating batch of
-        all others, so a camera returning anywhere on the map after a blink or a jump is found
-        again within a few frames."""
+        MIN_CANDIDATE_OVERLAP); then, while lost, a rotating batch of all others, so a camera
+        returning anywhere on the map after a blink or a jump is found again within a few
+        frames."""
         assert self._last_pose is not None
         overlaps = self._overlaps(self._last_pose, shape)
         ranked = sorted(
@@ -616,12 +616,12 @@ class KeyframeTracker:
             return {}
         out = {}
         assert best.H_frame_to_ref is not None
-        overlaps = self._overlaps(best.H_frame_to_ref, shape)
+        footprint = apply_homography(best.H_frame_to_ref, frame_corners(shape))
         for kid in reversed(ids[-1 - k.bridge_keyframes : -1]):
             kf = self._keyframes[kid]
             if kid in tried or kf.features is None or kf.frame_index == self._prev_index:
                 continue  # the previous frame's registration is its own link
-            if overlaps[kid] < self.MIN_CANDIDATE_OVERLAP:
+            if overlap_fraction(footprint, kf.footprint()) < self.MIN_CANDIDATE_OVERLAP:
                 continue
             out[kid] = _register(
                 kf.features, features, self._config, timer, shape, perspective=perspective
