@@ -42,6 +42,10 @@ class RimTest:
 # within 3 px had support 0.72 or more in 95 % of frames, residual <= 0.30 in 99 %; frames
 # without a rim reached support 0.45 in 99 % (0.68 at most, on 16 % of the circle seen).
 RIM_FIND = RimTest(seen=0.3, support=0.75, residual=0.3)
+# ... or a shorter arc that steps almost everywhere along it: a large lens's rim cut by the
+# frame's edges and the source's dark field of view (0.27-0.29 of it seen, support 0.97-1.0
+# on the first frames of 3 of 20 training-photograph rim videos, where RIM_FIND missed it)
+RIM_FIND_ARC = RimTest(seen=0.2, support=0.9, residual=0.3)
 # a rim near the last frame's (the hand moves it smoothly) is kept on weaker evidence: where
 # the face's colour meets the retina's, stretches of the rim hardly step
 RIM_KEEP = RimTest(seen=0.15, support=0.45, residual=0.35)
@@ -63,6 +67,11 @@ class RimFit:
             and self.support >= test.support
             and self.residual <= test.residual
         )
+
+    @property
+    def found(self) -> bool:
+        """Taken for a rim without a prior (`RIM_FIND` or `RIM_FIND_ARC`)."""
+        return self.shows(RIM_FIND) or self.shows(RIM_FIND_ARC)
 
 
 def _rim_gradient(small: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -206,8 +215,8 @@ def _check_rim(
 
 def find_lens_rim(image: np.ndarray, view: np.ndarray, near: Circle | None = None) -> RimFit | None:
     """A handheld lens's rim in a frame (BGR or grey, with its view mask `view`), in the
-    frame's pixels: the best circle that `RIM_FIND` takes, or, near `near` (the last frame's
-    rim), one that `RIM_KEEP` does; None where there is none.
+    frame's pixels: the best circle that `RIM_FIND` (or `RIM_FIND_ARC`) takes, or, near `near`
+    (the last frame's rim), one that `RIM_KEEP` does; None where there is none.
 
     On a copy of at most `RIM_SIDE_PX`, the strongest colour edges vote for circles of
     `RIM_RADII` (`_circle_votes`); `near` and the circles most voted for are refitted to the
@@ -239,7 +248,7 @@ def find_lens_rim(image: np.ndarray, view: np.ndarray, near: Circle | None = Non
         cx, cy = rescaled(np.asarray(near[:2], np.float64), s)
         prior = (cx, cy, near[2] * s)
         fit = checked(prior)
-        if fit.shows(RIM_FIND) and is_near(fit):
+        if fit.found and is_near(fit):
             return fit
         # on weak evidence, the radius is the last rim's (the lens's): a short arc's is loose
         fit = checked(prior, fixed_radius=True)
@@ -247,7 +256,7 @@ def find_lens_rim(image: np.ndarray, view: np.ndarray, near: Circle | None = Non
     strength, angle = _rim_gradient(small)
     radii = np.arange(RIM_RADII[0] * size[1], RIM_RADII[1] * size[1] + 1.0)
     found = [checked(c) for c in _circle_votes(strength, angle, lit, radii)]
-    taken = [f for f in found if f.shows(RIM_FIND)] or kept
+    taken = [f for f in found if f.found] or kept
     return max(taken, key=lambda f: f.support * f.seen, default=None)
 
 
@@ -279,6 +288,7 @@ class LensRimMask:
     MARGIN_PX = 3.0  # inside the rim: its soft edge (the features keep their own margin)
     HOLD_FRAMES = 8
     SEARCH_EVERY = 3  # with no rim in sight, every this many frames are searched (~6 ms each)
+    SEARCH_FIRST = 8  # ... but every one of the first frames: they anchor the mosaic
     # a held rim's uncertainty grows by this much a frame (px), plus this share of its motion
     HOLD_PX, HOLD_MOTION = 2.0, 0.5
 
@@ -315,7 +325,8 @@ class LensRimMask:
             self._history.clear()
         self._n += 1
         predicted = self._predicted()
-        if predicted is None and self._n - self._searched < self.SEARCH_EVERY:
+        later = self._n > self.SEARCH_FIRST
+        if predicted is None and later and self._n - self._searched < self.SEARCH_EVERY:
             return prepared  # no rim lately: a search now and then is enough
         self._searched = self._n
         fit = find_lens_rim(image, prepared.mask, predicted[0] if predicted else None)

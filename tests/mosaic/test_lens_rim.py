@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from mosaic import lens_rim
 from mosaic.config import Config, PreprocessConfig, with_overrides
 from mosaic.lens_rim import LensRimMask, find_lens_rim
 from mosaic.pipeline import MosaicBuilder
@@ -80,6 +81,47 @@ def test_no_keypoint_is_kept_outside_the_rim(clip):
         assert rho.max() < radius - 10, (i, rho.max(), radius)
         assert extracted.record.lens_rim is not None
         assert np.hypot(*np.subtract(extracted.record.lens_rim[:2], centres[i])) < 2.0
+
+
+# Clips from the shipped photograph whose first frame shows a large rim (0.57-0.59 of the
+# frame's height in radius) on only 22-27 % of its directions, cut by the frame's edges and
+# the source's dark field of view: a short arc, but one that steps almost everywhere along it.
+SHORT_ARC_SEEDS = (16, 24, 39, 58)
+
+
+@pytest.mark.parametrize("seed", SHORT_ARC_SEEDS)
+def test_a_large_rim_seen_on_a_short_arc_is_found_in_the_first_frame(fundus, seed, monkeypatch):
+    """The first frame anchors the mosaic: its rim is found within 2 px of the truth (centre
+    and radius) although less of it is seen than `RIM_FIND` asks; `RIM_FIND` alone misses
+    it (the premise: the shorter arc is taken for its near-perfect support, far above the
+    0.68 frames without a rim reached)."""
+    params = SynthParams.realistic(n_frames=4, seed=seed, lens_rim=True)
+    centres, radius = lens_rim_truth(params)  # type: ignore[misc]
+    frame, _ = next(iter(render_frames(fundus, params)))
+    prepared = prepare(frame, PreprocessConfig())
+    fit = find_lens_rim(frame, prepared.mask)
+    assert fit is not None and fit.seen < lens_rim.RIM_FIND.seen
+    cx, cy, r = fit.circle
+    assert np.hypot(cx - centres[0, 0], cy - centres[0, 1]) < 2.0, (fit, centres[0])
+    assert abs(r - radius) < 2.0, (r, radius)
+    monkeypatch.setattr(lens_rim.RimFit, "found", property(lambda f: f.shows(lens_rim.RIM_FIND)))
+    assert find_lens_rim(frame, prepared.mask) is None
+
+
+def test_each_of_the_first_frames_is_searched_for_a_rim_then_every_few(plain, monkeypatch):
+    """With no rim in sight, every one of the first `SEARCH_FIRST` frames is searched (they
+    anchor the mosaic: a rim missed in the first frame must not stay unmasked in the next
+    two), then every `SEARCH_EVERY`-th."""
+    now, searched = [0], []
+    monkeypatch.setattr(lens_rim, "find_lens_rim", lambda *_, **__: searched.append(now[0]))
+    config = PreprocessConfig()
+    masker = LensRimMask(config)
+    frames = plain[:20]
+    for i, frame in enumerate(frames):
+        now[0] = i
+        masker(frame, prepare(frame, config))
+    first, every = LensRimMask.SEARCH_FIRST, LensRimMask.SEARCH_EVERY
+    assert searched == [*range(first), *range(first + every - 1, len(frames), every)]
 
 
 def _aperture(frame: np.ndarray) -> np.ndarray:
