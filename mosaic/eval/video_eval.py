@@ -16,7 +16,6 @@ of runs are `video_tables`'.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -54,7 +53,7 @@ from mosaic.registration import MODELS as MOTION_MODELS
 from mosaic.report import FAILED, REGISTERED, SKIPPED, FrameEntry
 from mosaic.runner import VIDEO_SUFFIXES, Outputs, is_frame_folder, run_video
 from mosaic.runner import reread_frames as _reread
-from mosaic.synthetic.truth import gt_path_for, load_ground_truth
+from mosaic.synthetic.truth import gt_path_for, load_ground_truth, source_path
 
 log = logging.getLogger(__name__)
 
@@ -248,26 +247,6 @@ class FidelityReference:
     truth: list[np.ndarray]  # H_frame_to_source per frame index
     source: SourceTruth
     oracle: FidelityScores  # the mean of the frames placed by the truth
-
-
-def source_path(gt_file: Path) -> Path | None:
-    """The source photograph a ground-truth file names (None if it names none).
-
-    `~` is expanded; a relative path is looked up beside the ground truth (where its video
-    is), then from the current folder (where `mosaic synth` was run); the first that exists,
-    else the former.
-    """
-    try:
-        source = json.loads(gt_file.read_text(encoding="utf-8")).get("source")
-    except (OSError, ValueError, AttributeError) as exc:
-        raise InputError(f"malformed ground truth {gt_file}: {exc}") from exc
-    if not isinstance(source, str) or not source:
-        return None
-    p = Path(source).expanduser()
-    if p.is_absolute():
-        return p
-    beside = gt_file.parent / p
-    return beside if beside.is_file() or not p.is_file() else p
 
 
 def _fov_masker(config: Config) -> Callable[[np.ndarray], np.ndarray | None]:

@@ -28,7 +28,7 @@ import numpy as np
 
 from mosaic.errors import InputError
 from mosaic.preprocess import estimate_fov_disc
-from mosaic.synthetic.truth import gt_path_for
+from mosaic.synthetic.truth import gt_path_for, source_path
 
 log = logging.getLogger(__name__)
 
@@ -222,6 +222,10 @@ def load_baseline_gt(path: str | Path) -> dict[str, Any]:
         raise InputError(f"ground truth of the baseline not found: {gt_path}") from None
     except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
         raise InputError(f"malformed ground truth {gt_path}: {exc}") from None
+    source = source_path(gt_path)  # where it is from here (the file's may be relative to it)
+    if source is None:
+        raise InputError(f"malformed ground truth {gt_path}: it names no source photograph")
+    gt["source"] = str(source)
     return gt
 
 

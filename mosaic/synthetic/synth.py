@@ -63,7 +63,7 @@ from mosaic.synthetic.streams import (
     stream,
 )
 from mosaic.synthetic.trajectory import plan_trajectory
-from mosaic.synthetic.truth import VIDEO_CODECS, gt_path_for
+from mosaic.synthetic.truth import VIDEO_CODECS, gt_path_for, recorded_source
 
 log = logging.getLogger(__name__)
 
@@ -723,7 +723,7 @@ def write_synthetic_video(
         )
 
     gt = {
-        "source": str(source_path),
+        "source": recorded_source(source_path, gt_path_for(out)),
         "video": out.name,
         "size": [w, h],
         "fps": params.fps,

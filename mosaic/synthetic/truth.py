@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,37 @@ def gt_path_for(video_path: str | Path) -> Path:
     p = Path(video_path).expanduser()
     stem = p.name if p.is_dir() or p.suffix.lower() not in VIDEO_CODECS else p.stem
     return p.with_name(stem + ".gt.json")
+
+
+def recorded_source(source: str | Path, gt_file: Path) -> str:
+    """The source photograph's path as a ground truth records it: relative to the file's
+    folder where it can be, so that a set of videos and its photographs can be moved or
+    evaluated from any folder together; else absolute."""
+    absolute = Path(source).expanduser().resolve()
+    try:
+        return os.path.relpath(absolute, gt_file.expanduser().resolve().parent)
+    except ValueError:  # another drive (Windows): no relative path
+        return str(absolute)
+
+
+def source_path(gt_file: Path) -> Path | None:
+    """The source photograph a ground-truth file names (None if it names none).
+
+    `~` is expanded; a relative path is looked up beside the ground truth (as `synth` records
+    it), then from the current folder (files written before: relative to where `mosaic
+    synth` was run); the first that exists, else the former.
+    """
+    try:
+        source = json.loads(gt_file.read_text(encoding="utf-8")).get("source")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise InputError(f"malformed ground truth {gt_file}: {exc}") from exc
+    if not isinstance(source, str) or not source:
+        return None
+    p = Path(source).expanduser()
+    if p.is_absolute():
+        return p
+    beside = gt_file.parent / p
+    return beside if beside.is_file() or not p.is_file() else p
 
 
 def load_ground_truth(path: str | Path) -> list[np.ndarray]:
