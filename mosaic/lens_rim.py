@@ -169,7 +169,11 @@ def _fit_circle(xy: np.ndarray, start: Circle | None = None) -> tuple[Circle, np
 
 
 def _check_rim(
-    small: np.ndarray, lit: np.ndarray, circle: Circle, fixed_radius: bool = False
+    small: np.ndarray,
+    lit: np.ndarray,
+    circle: Circle,
+    fixed_radius: bool = False,
+    reach: float = RIM_REACH,
 ) -> RimFit:
     """`circle` (analysis px) refitted to the frame's edge across it, and how well the frame
     bears it out. In each of `RIM_ANGLES` directions the colour profile across the circle
@@ -181,7 +185,7 @@ def _check_rim(
     h, w = lit.shape
     cx, cy, r = circle
     theta = np.linspace(0.0, 2 * np.pi, RIM_ANGLES, endpoint=False)
-    d = np.arange(-RIM_REACH, RIM_REACH + 0.25, 0.5, dtype=np.float32)
+    d = np.arange(-reach, reach + 0.25, 0.5, dtype=np.float32)
     cos, sin = np.cos(theta)[:, None], np.sin(theta)[:, None]
     map_x = (cx + (r + d) * cos).astype(np.float32)
     map_y = (cy + (r + d) * sin).astype(np.float32)
@@ -211,6 +215,14 @@ def _check_rim(
     on = residual <= RIM_ON_CIRCLE
     support = float(on.sum()) / max(n_seen, 1)
     return RimFit(fitted, n_seen / len(theta), support, float(np.median(residual)))
+
+
+def _nearer_edge(small: np.ndarray, lit: np.ndarray, circle: Circle) -> Circle:
+    """A voted circle (analysis px) refitted to the edge within twice `RIM_REACH` of it: where
+    little of a rim is seen the vote may miss it by more than the reach (6 analysis px on
+    the first frames of a training-photograph video)."""
+    fit = _check_rim(small, lit, circle, reach=2 * RIM_REACH)
+    return fit.circle if np.isfinite(fit.residual) else circle
 
 
 def find_lens_rim(image: np.ndarray, view: np.ndarray, near: Circle | None = None) -> RimFit | None:
@@ -255,7 +267,8 @@ def find_lens_rim(image: np.ndarray, view: np.ndarray, near: Circle | None = Non
         kept = [fit] if fit.shows(RIM_KEEP) and is_near(fit) else []
     strength, angle = _rim_gradient(small)
     radii = np.arange(RIM_RADII[0] * size[1], RIM_RADII[1] * size[1] + 1.0)
-    found = [checked(c) for c in _circle_votes(strength, angle, lit, radii)]
+    votes = _circle_votes(strength, angle, lit, radii)
+    found = [checked(_nearer_edge(small, lit, c)) for c in votes]
     taken = [f for f in found if f.found] or kept
     return max(taken, key=lambda f: f.support * f.seen, default=None)
 
