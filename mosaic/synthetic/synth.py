@@ -723,7 +723,7 @@ def write_synthetic_video(
         )
 
     gt = {
-        "source": recorded_source(source_path, gt_path_for(out)),
+        **recorded_source(source_path, gt_path_for(out)),
         "video": out.name,
         "size": [w, h],
         "fps": params.fps,

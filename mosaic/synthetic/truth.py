@@ -24,26 +24,28 @@ def gt_path_for(video_path: str | Path) -> Path:
     return p.with_name(stem + ".gt.json")
 
 
-def recorded_source(source: str | Path, gt_file: Path) -> str:
+def recorded_source(source: str | Path, gt_file: Path) -> dict[str, str]:
     """The source photograph's path as a ground truth records it: relative to the file's
-    folder where it can be, so that a set of videos and its photographs can be moved or
-    evaluated from any folder together; else absolute."""
+    folder (`source`: a set moved together with its photographs, or read from any folder,
+    still finds them) and absolute (`source_absolute`: a set moved without them)."""
     absolute = Path(source).expanduser().resolve()
     try:
-        return os.path.relpath(absolute, gt_file.expanduser().resolve().parent)
+        relative = os.path.relpath(absolute, gt_file.expanduser().resolve().parent)
     except ValueError:  # another drive (Windows): no relative path
-        return str(absolute)
+        relative = str(absolute)
+    return {"source": relative, "source_absolute": str(absolute)}
 
 
 def source_path(gt_file: Path) -> Path | None:
     """The source photograph a ground-truth file names (None if it names none).
 
     `~` is expanded; a relative path is looked up beside the ground truth (as `synth` records
-    it), then from the current folder (files written before: relative to where `mosaic
-    synth` was run); the first that exists, else the former.
+    it), then at `source_absolute`, then from the current folder (files written before:
+    relative to where `mosaic synth` was run); the first that exists, else the first.
     """
     try:
-        source = json.loads(gt_file.read_text(encoding="utf-8")).get("source")
+        truth = json.loads(gt_file.read_text(encoding="utf-8"))
+        source, absolute = truth.get("source"), truth.get("source_absolute")
     except (OSError, ValueError, AttributeError) as exc:
         raise InputError(f"malformed ground truth {gt_file}: {exc}") from exc
     if not isinstance(source, str) or not source:
@@ -51,8 +53,8 @@ def source_path(gt_file: Path) -> Path | None:
     p = Path(source).expanduser()
     if p.is_absolute():
         return p
-    beside = gt_file.parent / p
-    return beside if beside.is_file() or not p.is_file() else p
+    candidates = [gt_file.parent / p, *([Path(absolute)] if isinstance(absolute, str) else []), p]
+    return next((c for c in candidates if c.is_file()), candidates[0])
 
 
 def load_ground_truth(path: str | Path) -> list[np.ndarray]:

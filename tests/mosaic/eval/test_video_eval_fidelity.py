@@ -36,11 +36,12 @@ def clip(tmp_path_factory):
 
 
 def _copy_with_source(clip, folder, source: str | None):
-    """A copy of the clip whose ground truth names `source` (None: the key removed)."""
+    """A copy of the clip whose ground truth names `source` alone (None: the key removed)."""
     folder.mkdir()
     video = folder / "clip"
     shutil.copytree(clip, video)
     gt = json.loads(gt_path_for(clip).read_text())
+    del gt["source_absolute"]
     if source is None:
         del gt["source"]
     else:

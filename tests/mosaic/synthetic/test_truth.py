@@ -38,8 +38,9 @@ def test_malformed_or_missing_ground_truth(tmp_path):
 def test_a_set_moved_with_its_photographs_still_names_them(tmp_path, monkeypatch):
     """The ground truth records the source relative to its own folder: a set copied
     elsewhere together with its photographs, and read from any folder, finds them (the
-    fidelity needs them); a truth that names it relative to where `synth` ran (files
-    written before) is still read from there."""
+    fidelity needs them); one copied without them finds them where they were (the absolute
+    path beside); a truth that names it relative to where `synth` ran (files written
+    before) is still read from there."""
     photos, videos = tmp_path / "a" / "photos", tmp_path / "a" / "videos"
     photos.mkdir(parents=True)
     videos.mkdir()
@@ -54,6 +55,10 @@ def test_a_set_moved_with_its_photographs_still_names_them(tmp_path, monkeypatch
     assert source_path(moved).resolve() == (tmp_path / "b" / "photos" / "eye.jpg").resolve()
     old = json.loads(moved.read_text())
     old["source"] = "photos/eye.jpg"  # relative to where synth ran (tmp_path / "b")
+    del old["source_absolute"]  # not written then
     moved.write_text(json.dumps(old))
     monkeypatch.chdir(tmp_path / "b")
     assert source_path(moved) == Path("photos/eye.jpg") and gt_file.name == "v.gt.json"
+    # the set moved without its photographs: the absolute path recorded beside finds them
+    shutil.copytree(tmp_path / "a" / "videos", tmp_path / "c")
+    assert source_path(tmp_path / "c" / "v.gt.json") == (photos / "eye.jpg").resolve()
